@@ -1,0 +1,104 @@
+"""The ``selfcontra`` command line: a thin adapter over the library.
+
+Each subcommand parses its arguments here and delegates to one library
+function; nothing of the algorithm lives in this file. Modules are imported
+inside the handlers so that ``selfcontra --help`` stays fast and one
+subcommand's optional dependencies never break another.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from selfcontra_ros.errors import SelfContraError
+
+__all__ = ["build_parser", "main"]
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        width, height = (int(part) for part in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT such as 1226x370, got {text!r}") from None
+    if width < 16 or height < 16:
+        raise argparse.ArgumentTypeError(f"image size {text!r} is too small (at least 16x16)")
+    return width, height
+
+
+def _frame_range(text: str) -> slice:
+    """Parse ``A:B`` (either side optional) as a Python slice of frame indices."""
+    parts = text.split(":")
+    if len(parts) != 2:
+        raise argparse.ArgumentTypeError(f"expected a frame range A:B, got {text!r}")
+    try:
+        start, stop = (int(p) if p.strip() else None for p in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"frame range bounds must be integers, got {text!r}") from None
+    return slice(start, stop)
+
+
+def _cmd_synth(args: argparse.Namespace) -> int:
+    from selfcontra_ros.datasets.synthetic import write_sequence
+
+    width, height = args.size
+    root = write_sequence(
+        Path(args.out), scene=args.scene, frames=args.frames, seed=args.seed, width=width, height=height
+    )
+    print(f"wrote {args.frames} frames of the {args.scene!r} scene (seed {args.seed}) to {root}")
+    return 0
+
+
+def _cmd_label(args: argparse.Namespace) -> int:
+    from selfcontra_ros.pipeline import label_sequence
+
+    metrics = label_sequence(Path(args.input), Path(args.out), params_file=args.params, frames=args.frames)
+    mean = metrics.get("mean", {})
+    if mean:
+        print("mean: " + ", ".join(f"{k}={v:.4f}" for k, v in mean.items() if isinstance(v, float)))
+    print(f"wrote labels and metrics.json to {args.out}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Return the argument parser of the ``selfcontra`` command."""
+    parser = argparse.ArgumentParser(
+        prog="selfcontra",
+        description="Stereo confidence labels from self-contradiction (Mostegel et al., CVPR 2016).",
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    synth = sub.add_parser("synth", help="render a synthetic stereo sequence in the KITTI odometry layout")
+    synth.add_argument("--scene", choices=("street", "orbit"), default="street")
+    synth.add_argument("--frames", type=int, default=30, help="number of stereo frames (default 30)")
+    synth.add_argument("--seed", type=int, default=1, help="random seed; output is deterministic per seed")
+    synth.add_argument("--size", type=_size, default=(1226, 370), help="image size WxH (default 1226x370)")
+    synth.add_argument("--out", required=True, help="output dataset root (sequences/00, poses/00.txt)")
+    synth.set_defaults(handler=_cmd_synth)
+
+    label = sub.add_parser("label", help="label a KITTI-layout sequence with the self-contradiction labeler")
+    label.add_argument("input", help="sequence folder (dataset root or sequences/XX)")
+    label.add_argument("--out", required=True, help="output folder for label images and metrics.json")
+    label.add_argument("--params", default=None, help="parameter YAML (default: the package's config/labeler.yaml)")
+    label.add_argument("--frames", type=_frame_range, default=None, help="frame range A:B (Python slice)")
+    label.set_defaults(handler=_cmd_label)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the ``selfcontra`` command; returns the process exit code."""
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.handler(args))
+    except SelfContraError as exc:
+        print(f"selfcontra {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"selfcontra {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Dataset readers (KITTI) and the package's own synthetic scenes."""

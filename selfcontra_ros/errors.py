@@ -1,0 +1,31 @@
+"""Exception classes of selfcontra_ros.
+
+Every error the package raises on bad input derives from
+:class:`SelfContraError`, so callers (the ROS nodes, the command line) can
+catch the package's own complaints without hiding programming errors.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "CalibrationError",
+    "ConversionError",
+    "DatasetError",
+    "SelfContraError",
+]
+
+
+class SelfContraError(Exception):
+    """Base class of all errors raised by selfcontra_ros on bad input."""
+
+
+class CalibrationError(SelfContraError):
+    """Camera calibration is missing, not rectified or inconsistent."""
+
+
+class ConversionError(SelfContraError):
+    """A ROS message cannot be converted to or from a numpy array."""
+
+
+class DatasetError(SelfContraError):
+    """A dataset folder or file is missing or malformed."""

@@ -1,0 +1,1 @@
+"""Query algorithms: the stereo matchers whose depth maps get labelled."""

@@ -1,0 +1,1 @@
+"""The three labelling stages of the paper: support, voting, outliers."""

@@ -1,0 +1,59 @@
+"""Build script for selfcontra_ros (ament_python layout, also pip-installable).
+
+colcon (with colcon-ros) reads this file like any ROS 2 Python package and
+installs the node executables to ``lib/selfcontra_ros/``; plain ``pip
+install .`` installs the same entry points to the environment's ``bin/``.
+"""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "selfcontra_ros"
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    packages=find_packages(include=[PACKAGE, f"{PACKAGE}.*"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/config", sorted(glob("config/*"))),
+        (f"share/{PACKAGE}/launch", sorted(glob("launch/*.py"))),
+    ],
+    python_requires=">=3.10",
+    install_requires=[
+        "numpy>=1.24",
+        "opencv-python-headless>=4.8",
+        "scikit-learn>=1.3",
+        "rosbags>=0.10",
+        "mcap>=1.1",
+        "mcap-ros2-support>=0.5",
+        "PyYAML>=6.0",
+        "tqdm>=4.60",
+        "matplotlib>=3.7",
+    ],
+    extras_require={
+        "ros": [
+            "ros-rclpy",
+            "ros-rmw-fastrtps-cpp",
+            "ros-std-msgs",
+            "ros-sensor-msgs",
+            "ros-geometry-msgs",
+            "ros-stereo-msgs",
+            "ros-nav-msgs",
+            "ros-ament-index-python",
+        ],
+        "dev": ["pytest", "pytest-timeout", "ruff", "mypy", "types-PyYAML"],
+    },
+    zip_safe=True,
+    maintainer="selfcontra_ros developers",
+    maintainer_email="selfcontra-ros@example.invalid",
+    description="Self-supervised stereo confidence labels from self-contradiction (Mostegel et al., CVPR 2016).",
+    license="Apache-2.0",
+    entry_points={
+        "console_scripts": [
+            "selfcontra = selfcontra_ros.cli:main",
+        ],
+    },
+)
