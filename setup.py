@@ -44,7 +44,7 @@ setup(
             "ros-nav-msgs",
             "ros-ament-index-python",
         ],
-        "dev": ["pytest", "pytest-timeout", "ruff", "mypy", "types-PyYAML"],
+        "dev": ["pytest", "pytest-timeout", "ruff", "mypy", "types-PyYAML", "catkin-pkg"],
     },
     zip_safe=True,
     maintainer="selfcontra_ros developers",
