@@ -20,9 +20,12 @@ __all__ = ["StereoCamera", "invert_pose", "transform_points"]
 
 FloatArray = NDArray[np.floating]
 
-# Relative tolerance when checking that two projection matrices describe one
-# rectified pair (equal intrinsics, purely horizontal baseline).
+# Relative tolerance when checking that two projection matrices share their
+# intrinsics (a rectified pair).
 _RECTIFIED_RTOL = 1e-6
+# Largest vertical or forward offset between the two optical centres accepted
+# as rectification residue, as a share of the baseline (KITTI colour: < 1 %).
+_MAX_OFF_AXIS_RATIO = 0.02
 
 
 @dataclass(frozen=True)
@@ -71,11 +74,14 @@ class StereoCamera:
     ) -> StereoCamera:
         """Build the camera from the rectified 3x4 projection matrices.
 
-        ``P = K [I | t]`` for both cameras of a rectified pair, so
-        ``P[0, 3] = fx * t_x`` and the baseline is
-        ``(P_left[0, 3] - P_right[0, 3]) / fx``. The left matrix may carry a
-        non-zero ``t_x`` (KITTI colour cameras 2 and 3 are offset from the
-        reference camera 0); only the difference matters.
+        ``P = K [I | t]`` for both cameras of a rectified pair; the baseline
+        is ``t_left,x - t_right,x`` with ``t = K^-1 P[:, 3]``, which is
+        ``(P_left[0, 3] - P_right[0, 3]) / fx`` when the cameras have no
+        forward offset. The left matrix may carry a non-zero ``t_x`` (KITTI
+        colour cameras 2 and 3 are offset from the reference camera 0); only
+        the difference matters. Vertical or forward offsets up to 2 % of the
+        baseline (rectification residue, a few millimetres on KITTI) are
+        ignored.
 
         Raises:
             CalibrationError: naming the offending entry when the matrices
@@ -111,18 +117,23 @@ class StereoCamera:
             raise CalibrationError(f"{source}: P[0,1] (skew) = {pl[0, 1]}, expected 0 for a rectified camera")
         if not np.allclose(pl[2, :3], [0.0, 0.0, 1.0]) or not np.allclose(pr[2, :3], [0.0, 0.0, 1.0]):
             raise CalibrationError(f"{source}: third row of P must be [0, 0, 1, *] for a rectified camera")
-        for r, label in ((1, "vertical (P[1,3])"), (2, "forward (P[2,3])")):
-            if abs(pl[r, 3] - pr[r, 3]) > _RECTIFIED_RTOL * scale:
-                raise CalibrationError(
-                    f"{source}: {label} offset differs between left ({pl[r, 3]}) and right "
-                    f"({pr[r, 3]}); only a horizontal baseline is supported"
-                )
-        baseline = (pl[0, 3] - pr[0, 3]) / fx
+        # P = K [I | t]: the camera offsets t = K^-1 P[:, 3], metres. Real rectified
+        # pairs (KITTI colour cameras 2/3) keep millimetre vertical/forward offsets
+        # after rectification; their rows stay aligned, so small ones are ignored.
+        k_inv = np.linalg.inv(pl[:, :3])
+        difference = k_inv @ pl[:, 3] - k_inv @ pr[:, 3]
+        baseline = float(difference[0])
         if baseline <= 0:
             raise CalibrationError(
                 f"{source}: baseline from P[0,3] is {baseline} m; expected > 0 "
                 "(right P[0,3] = -fx * baseline relative to the left camera)"
             )
+        for axis, label in ((1, "vertical (P[1,3])"), (2, "forward (P[2,3])")):
+            if abs(difference[axis]) > _MAX_OFF_AXIS_RATIO * baseline:
+                raise CalibrationError(
+                    f"{source}: {label} offset between left and right is {difference[axis]:.4f} m against a "
+                    f"baseline of {baseline:.4f} m; only a horizontal baseline is supported"
+                )
         return cls(
             fx=float(fx),
             fy=float(pl[1, 1]),
