@@ -1,0 +1,274 @@
+"""The self-contradiction labeler: a sliding window of views and the three stages.
+
+One :class:`Labeler` per stereo camera. Feed it one disparity map and pose
+per frame with :meth:`Labeler.add_view`; it keeps the last ``window_size``
+kept views, runs Stage 1 (support) incrementally as each view arrives, and
+labels a view once ``label_delay`` newer views have arrived (Stages 2 and 3
+against every other view then in the window). :meth:`Labeler.flush` labels the
+views still waiting at the end of a sequence. No ROS import: the offline
+command and the ROS node both call this object.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Hashable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from selfcontra_ros.errors import SelfContraError
+from selfcontra_ros.geometry import StereoCamera
+from selfcontra_ros.labels import NEGATIVE, UNKNOWN
+from selfcontra_ros.stages._common import TOLERANCES
+from selfcontra_ros.stages.outliers import READINGS, augmented_depth, outlier_negatives, trivial_outliers
+from selfcontra_ros.stages.support import MAX_BINS, update_support
+from selfcontra_ros.stages.voting import consistency_voting
+from selfcontra_ros.window import View, ViewWindow, make_view, support_count
+
+__all__ = ["LabelResult", "Labeler", "LabelerParams"]
+
+
+@dataclass(frozen=True)
+class LabelerParams:
+    """Parameters of the labeler; the defaults are the package defaults (``config/labeler.yaml`` mirrors them).
+
+    Attributes:
+        window_size: views kept in the sliding window (memory is bounded by it).
+            Default 10: at KITTI's ~1 m per frame a view then sees the scene
+            from up to ~5 m before and after, enough for angles above
+            ``alpha_min`` on the verges and facades, at ~10 MB per view.
+        label_delay: a view is labelled when this many newer views have
+            arrived (``0 <= label_delay < window_size``). Default 5, half the
+            window: the labelled view sits in the middle of its references, so
+            views from both sides of it (forward motion: behind and ahead) vote.
+        alpha_min_deg: minimum observation angle and angular bin width, degrees (paper: 10).
+        sigma_max: tolerance in standard deviations (paper: 2).
+        sigma_px: isotropic image noise, pixels, for the point covariances.
+        stage1_tolerance: ``smaller`` (paper: covariance of the more accurate
+            point) or ``sum`` (``dX^T (C_q + C_r)^-1 dX``, more coverage,
+            slightly lower accuracy); ``query`` is accepted too.
+        stage2_tolerance: ``sum`` (default, DESIGN section 3) or ``query``
+            (paper: the query covariance alone); ``smaller`` is accepted too.
+        stage3_tolerance: ``std`` (tolerances as standard deviations, metres;
+            DESIGN section 3) or ``paper`` (the literal formulas).
+        min_positive_votes: +1 votes an augmented-depth candidate needs (paper: 3).
+        keyframe_min_translation: metres; a view closer than this to the
+            newest kept view (left camera centres) and rotated less than
+            ``keyframe_min_rotation_deg`` from it is skipped. Default 0.05 m.
+        keyframe_min_rotation_deg: degrees, see above. Default 1.
+    """
+
+    window_size: int = 10
+    label_delay: int = 5
+    alpha_min_deg: float = 10.0
+    sigma_max: float = 2.0
+    sigma_px: float = 1.0
+    stage1_tolerance: str = "smaller"
+    stage2_tolerance: str = "sum"
+    stage3_tolerance: str = "std"
+    min_positive_votes: int = 3
+    keyframe_min_translation: float = 0.05
+    keyframe_min_rotation_deg: float = 1.0
+
+    def __post_init__(self) -> None:
+        for name in ("window_size", "label_delay", "min_positive_votes"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+                raise ValueError(f"LabelerParams.{name} must be an integer, got {value!r}")
+        for name in ("alpha_min_deg", "sigma_max", "sigma_px", "keyframe_min_translation", "keyframe_min_rotation_deg"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
+                raise ValueError(f"LabelerParams.{name} must be a number, got {value!r}")
+            if not np.isfinite(value):
+                raise ValueError(f"LabelerParams.{name} must be finite, got {value!r}")
+        if self.window_size < 2:
+            raise ValueError(f"LabelerParams.window_size must be >= 2 (views need references), got {self.window_size}")
+        if not 0 <= self.label_delay < self.window_size:
+            raise ValueError(
+                f"LabelerParams.label_delay must be in [0, window_size - 1] = [0, {self.window_size - 1}], "
+                f"got {self.label_delay}"
+            )
+        if not 180.0 / (MAX_BINS - 1) < self.alpha_min_deg < 180.0:
+            raise ValueError(
+                f"LabelerParams.alpha_min_deg must be in ({180.0 / (MAX_BINS - 1):.3f}, 180) degrees, "
+                f"got {self.alpha_min_deg}"
+            )
+        for name in ("sigma_max", "sigma_px"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"LabelerParams.{name} must be > 0, got {getattr(self, name)}")
+        for name in ("keyframe_min_translation", "keyframe_min_rotation_deg"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"LabelerParams.{name} must be >= 0, got {getattr(self, name)}")
+        if self.min_positive_votes < 1:
+            raise ValueError(f"LabelerParams.min_positive_votes must be >= 1, got {self.min_positive_votes}")
+        for name, choices in (
+            ("stage1_tolerance", TOLERANCES),
+            ("stage2_tolerance", TOLERANCES),
+            ("stage3_tolerance", READINGS),
+        ):
+            if getattr(self, name) not in choices:
+                raise ValueError(f"LabelerParams.{name} must be one of {choices}, got {getattr(self, name)!r}")
+
+    @classmethod
+    def from_dict(cls, values: Mapping[str, Any]) -> LabelerParams:
+        """Parameters from a mapping (e.g. a YAML section); missing keys keep their defaults.
+
+        Raises:
+            ValueError: naming unknown keys, or any invalid value.
+        """
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ValueError(f"unknown labeler parameter(s) {unknown}; known: {sorted(known)}")
+        return cls(**dict(values))
+
+
+@dataclass
+class LabelResult:
+    """Labels of one view and the intermediate maps that produced them (all HxW).
+
+    Attributes:
+        key: what the caller passed with the view.
+        stamp: the labelled view's own stamp, seconds.
+        labels: final labels (0 unknown, 1 positive, 2 negative).
+        stage2_labels: labels after Stage 2 alone.
+        support: Stage-1 support (distinct angle bins) of the view.
+        vote_sum: Stage-2 vote sum (0 where no vote).
+        augmented_depth: Stage-3 augmented depth, metres (NaN where none or not computed).
+        uncertainty: ``u``, largest covariance eigenvalue per pixel, m^2 (NaN invalid).
+    """
+
+    key: Hashable
+    stamp: float
+    labels: NDArray[np.uint8]
+    stage2_labels: NDArray[np.uint8]
+    support: NDArray[np.uint8]
+    vote_sum: NDArray[np.float32]
+    augmented_depth: NDArray[np.float32]
+    uncertainty: NDArray[np.float32]
+
+
+class Labeler:
+    """Online self-contradiction labeler over a sliding window of views."""
+
+    def __init__(self, camera: StereoCamera, params: LabelerParams | None = None) -> None:
+        """Create a labeler for one rectified stereo camera."""
+        self.camera = camera
+        self.params = params if params is not None else LabelerParams()
+        self.window = ViewWindow(
+            self.params.window_size, self.params.keyframe_min_translation, self.params.keyframe_min_rotation_deg
+        )
+        self.skipped_views = 0
+        self._calls = 0
+        self._kept = 0
+
+    def add_view(
+        self, disparity: NDArray[np.floating], pose: NDArray[np.floating], *, stamp: float, key: Hashable = None
+    ) -> list[LabelResult]:
+        """Add one view; returns the labels of the views that became ready (``label_delay`` views back).
+
+        Args:
+            disparity: HxW left disparity, pixels; NaN, inf or <= 0 is invalid.
+            pose: 4x4 ``T_world_left`` (metres).
+            stamp: the view's stamp, seconds; the label image carries it.
+            key: returned with the labels; defaults to the running number of ``add_view`` calls.
+
+        Raises:
+            SelfContraError: naming the disparity shape or the pose when malformed.
+        """
+        call = self._calls
+        self._calls += 1
+        disp = np.asarray(disparity)
+        shape = (self.camera.height, self.camera.width)
+        if disp.shape != shape:
+            raise SelfContraError(f"disparity has shape {disp.shape}; expected {shape} (camera height x width)")
+        pose64 = _checked_pose(pose)
+        if not self.window.is_keyframe(pose64):
+            self.skipped_views += 1
+            return []
+        p = self.params
+        view = make_view(
+            self.camera,
+            disp,
+            pose64,
+            index=self._kept,
+            key=call if key is None else key,
+            stamp=stamp,
+            sigma_px=p.sigma_px,
+        )
+        self._kept += 1
+        update_support(
+            view,
+            list(self.window),
+            self.camera,
+            alpha_min_deg=p.alpha_min_deg,
+            sigma_max=p.sigma_max,
+            sigma_px=p.sigma_px,
+            tolerance=p.stage1_tolerance,
+        )
+        self.window.push(view)
+        ready = [v for v in self.window if not v.labelled and v.index <= view.index - p.label_delay]
+        return [self._label(v) for v in ready]
+
+    def flush(self) -> list[LabelResult]:
+        """Label every view still waiting, with the views available, and empty the window for a new sequence."""
+        results = [self._label(v) for v in self.window if not v.labelled]
+        self.window.clear()
+        return results
+
+    def _label(self, view: View) -> LabelResult:
+        """Stages 2 and 3 for one view against every other view in the window."""
+        p = self.params
+        cam = self.camera
+        refs = self.window.others(view)
+        voting = consistency_voting(
+            view, refs, cam, sigma_max=p.sigma_max, sigma_px=p.sigma_px, tolerance=p.stage2_tolerance
+        )
+        labels = voting.labels.copy()
+        unknown = labels == UNKNOWN
+        trivial = trivial_outliers(view, cam) & unknown
+        pending = view.valid & unknown & ~trivial
+        z_aug = augmented_depth(
+            view,
+            refs,
+            pending,
+            cam,
+            sigma_max=p.sigma_max,
+            sigma_px=p.sigma_px,
+            reading=p.stage3_tolerance,
+            min_positive_votes=p.min_positive_votes,
+        )
+        negatives = outlier_negatives(
+            view, z_aug, pending, cam, sigma_max=p.sigma_max, sigma_px=p.sigma_px, reading=p.stage3_tolerance
+        )
+        labels[trivial | negatives] = NEGATIVE
+        view.labelled = True
+        shape = (cam.height, cam.width)
+        return LabelResult(
+            key=view.key,
+            stamp=view.stamp,
+            labels=labels.reshape(shape),
+            stage2_labels=voting.labels.reshape(shape),
+            support=support_count(view.support_bits).reshape(shape),
+            vote_sum=voting.vote_sum.astype(np.float32).reshape(shape),
+            augmented_depth=z_aug.astype(np.float32).reshape(shape),
+            uncertainty=view.u.reshape(shape),
+        )
+
+
+def _checked_pose(pose: NDArray[np.floating]) -> NDArray[np.float64]:
+    """The pose as a float64 4x4 rigid transform; raises SelfContraError naming what is wrong."""
+    t = np.asarray(pose, dtype=np.float64)
+    if t.shape != (4, 4):
+        raise SelfContraError(f"pose has shape {t.shape}; expected a 4x4 T_world_left matrix")
+    if not np.all(np.isfinite(t)):
+        raise SelfContraError("pose holds non-finite values; expected a finite 4x4 T_world_left matrix")
+    rotation = t[:3, :3]
+    if not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-4) or np.linalg.det(rotation) <= 0:
+        raise SelfContraError("pose rotation block is not a proper rotation (R R^T != I or det(R) <= 0)")
+    if not np.allclose(t[3], [0.0, 0.0, 0.0, 1.0]):
+        raise SelfContraError(f"pose last row is {t[3].tolist()}; expected [0, 0, 0, 1]")
+    return t

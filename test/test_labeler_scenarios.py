@@ -1,0 +1,156 @@
+"""The labeler on analytic scenes: a wall and a floor seen from an arc of stereo poses.
+
+Depth is rendered exactly by ray-plane intersection, so every expectation is
+known: perfect depth is consistent, depth pushed in front of or behind the
+surface contradicts the other views, a part of the wall seen from one
+direction only cannot be labelled, and views closer than ``alpha_min`` give no
+support.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from selfcontra_ros.geometry import StereoCamera, transform_points
+from selfcontra_ros.labeler import Labeler, LabelerParams, LabelResult
+from selfcontra_ros.labels import NEGATIVE, POSITIVE, UNKNOWN
+
+CAMERA = StereoCamera(fx=200.0, fy=200.0, cx=79.5, cy=59.5, baseline=0.5, width=160, height=120)
+WALL_Z = 10.0
+FLOOR_Y = 1.5
+TARGET = np.array([0.0, 0.3, WALL_Z])
+# (normal, offset) of the planes n . X = c, world frame (y down, like the optical frames).
+PLANES = ((np.array([0.0, 0.0, 1.0]), WALL_Z), (np.array([0.0, 1.0, 0.0]), FLOOR_Y))
+
+
+def look_at(position: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """``T_world_left`` of a camera at ``position`` looking at ``target`` with image rows pointing down (+y)."""
+    z = target - position
+    z = z / np.linalg.norm(z)
+    x = np.cross([0.0, 1.0, 0.0], z)
+    x /= np.linalg.norm(x)
+    pose = np.eye(4)
+    pose[:3, :3] = np.column_stack([x, np.cross(z, x), z])
+    pose[:3, 3] = position
+    return pose
+
+
+def orbit_pose(theta_deg: float, radius: float = 8.0) -> np.ndarray:
+    """Pose on a horizontal arc around TARGET, ``theta_deg`` from straight on."""
+    t = np.radians(theta_deg)
+    return look_at(TARGET + radius * np.array([np.sin(t), 0.0, -np.cos(t)]), TARGET)
+
+
+def render_depth(pose: np.ndarray, planes: tuple[tuple[np.ndarray, float], ...] = PLANES) -> np.ndarray:
+    """Exact depth (HxW, metres) of the nearest plane along each left-camera ray."""
+    u, v = np.meshgrid(np.arange(CAMERA.width, dtype=float), np.arange(CAMERA.height, dtype=float))
+    rays = np.stack([(u - CAMERA.cx) / CAMERA.fx, (v - CAMERA.cy) / CAMERA.fy, np.ones_like(u)], axis=-1)
+    directions = rays @ pose[:3, :3].T
+    depth = np.full(u.shape, np.inf)
+    for normal, offset in planes:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (offset - normal @ pose[:3, 3]) / (directions @ normal)
+        depth = np.where((t > 0) & (t < depth), t, depth)
+    return depth
+
+
+def world_points(pose: np.ndarray, disparity: np.ndarray) -> np.ndarray:
+    return transform_points(pose, CAMERA.backproject(disparity))
+
+
+def run(disparities: list[np.ndarray], poses: list[np.ndarray], params: LabelerParams) -> list[LabelResult]:
+    labeler = Labeler(CAMERA, params)
+    results: list[LabelResult] = []
+    for i, (disp, pose) in enumerate(zip(disparities, poses, strict=True)):
+        results += labeler.add_view(disp, pose, stamp=100.0 + i, key=i)
+    results += labeler.flush()
+    return results
+
+
+ANGLES = (-36.0, -24.0, -12.0, 0.0, 12.0, 24.0, 36.0)
+MIDDLE = 3
+PARAMS = LabelerParams(window_size=7, label_delay=3)
+
+
+def _middle_result(disparities: list[np.ndarray], poses: list[np.ndarray], params: LabelerParams) -> LabelResult:
+    results = {r.key: r for r in run(disparities, poses, params)}
+    return results[MIDDLE]
+
+
+@pytest.fixture(scope="module")
+def arc() -> tuple[list[np.ndarray], list[np.ndarray]]:
+    poses = [orbit_pose(a) for a in ANGLES]
+    return [CAMERA.depth_to_disparity(render_depth(p)) for p in poses], poses
+
+
+def _inside_right_image(disparity: np.ndarray) -> np.ndarray:
+    """Pixels whose disparity keeps them inside the right image (no trivial outlier)."""
+    return np.arange(CAMERA.width)[None, :] - disparity >= 0
+
+
+def test_perfect_depth_gives_positives_and_no_negatives(arc: tuple[list[np.ndarray], list[np.ndarray]]) -> None:
+    disparities, poses = arc
+    result = _middle_result(disparities, poses, PARAMS)
+    inside = _inside_right_image(disparities[MIDDLE])
+    assert not np.any((result.labels == NEGATIVE) & inside)
+    assert np.mean(result.labels[inside] == POSITIVE) > 0.6
+    # The centre of the wall is seen from six directions in three bins.
+    assert np.all(result.support[50:70, 70:90] == 3)
+
+
+def test_patch_in_front_of_surface_is_negative(arc: tuple[list[np.ndarray], list[np.ndarray]]) -> None:
+    disparities, poses = arc
+    bad = [d.copy() for d in disparities]
+    bad[MIDDLE][40:70, 60:100] *= WALL_Z / 6.5  # the wall at ~8 m moved to ~5 m: blocks the other views
+    result = _middle_result(bad, poses, PARAMS)
+    core = result.labels[45:65, 65:95]
+    assert np.mean(core == NEGATIVE) > 0.95
+    outside = np.ones(core.shape[:0] + result.labels.shape, dtype=bool)
+    outside[35:75, 55:105] = False
+    assert not np.any((result.labels == NEGATIVE) & outside & _inside_right_image(bad[MIDDLE]))
+
+
+def test_patch_behind_surface_is_negative(arc: tuple[list[np.ndarray], list[np.ndarray]]) -> None:
+    disparities, poses = arc
+    bad = [d.copy() for d in disparities]
+    bad[MIDDLE][40:70, 60:100] *= 0.6  # depth * 1.67: the other views' wall blocks the query's line of sight
+    result = _middle_result(bad, poses, PARAMS)
+    assert np.mean(result.labels[45:65, 65:95] == NEGATIVE) > 0.95
+    assert np.mean(result.stage2_labels[45:65, 65:95] == NEGATIVE) > 0.95
+
+
+def test_region_seen_from_one_direction_stays_unknown(arc: tuple[list[np.ndarray], list[np.ndarray]]) -> None:
+    disparities, poses = arc
+    region = (-1.0, 0.5, -1.0, 0.2)  # x0, x1, y0, y1 on the wall
+    masked = []
+    for i, (disp, pose) in enumerate(zip(disparities, poses, strict=True)):
+        pts = world_points(pose, disp)
+        inside = (pts[..., 0] > region[0]) & (pts[..., 0] < region[1]) & (pts[..., 1] > region[2])
+        inside &= pts[..., 1] < region[3]
+        masked.append(disp if i == MIDDLE else np.where(inside, np.nan, disp))
+    result = _middle_result(masked, poses, PARAMS)
+    pts = world_points(poses[MIDDLE], disparities[MIDDLE])
+    margin = 0.15
+    core = (pts[..., 0] > region[0] + margin) & (pts[..., 0] < region[1] - margin)
+    core &= (pts[..., 1] > region[2] + margin) & (pts[..., 1] < region[3] - margin)
+    assert core.sum() > 100
+    assert np.all(result.labels[core] == UNKNOWN)
+    assert np.all(result.support[core] == 0)
+    assert np.mean(result.labels[~core & _inside_right_image(disparities[MIDDLE])] == POSITIVE) > 0.5
+
+
+def test_views_closer_than_alpha_min_give_no_support() -> None:
+    # At most 8 degrees apart at the wall (the wall alone: a nearby floor would see larger angles).
+    angles = (-4.0, -2.0, 0.0, 2.0, 4.0)
+    poses = [orbit_pose(a) for a in angles]
+    disparities = [CAMERA.depth_to_disparity(render_depth(p, PLANES[:1])) for p in poses]
+    params = LabelerParams(window_size=5, label_delay=2)
+    results = run(disparities, poses, params)
+    assert len(results) == 5
+    for result in results:
+        assert np.all(result.support == 0)
+        assert np.all(result.stage2_labels == UNKNOWN)
+        assert np.all(result.vote_sum == 0)
+        inside = _inside_right_image(disparities[int(result.key)])
+        assert not np.any((result.labels == NEGATIVE) & inside)

@@ -1,0 +1,120 @@
+"""The sliding window, the keyframe rule, label timing and the parameters."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from selfcontra_ros.errors import SelfContraError
+from selfcontra_ros.geometry import StereoCamera
+from selfcontra_ros.labeler import Labeler, LabelerParams
+from selfcontra_ros.window import ViewWindow, make_view, support_count
+
+CAMERA = StereoCamera(fx=40.0, fy=40.0, cx=15.5, cy=11.5, baseline=0.3, width=32, height=24)
+
+
+def _pose(x: float, yaw_deg: float = 0.0) -> np.ndarray:
+    t = np.radians(yaw_deg)
+    pose = np.eye(4)
+    pose[:3, :3] = [[np.cos(t), 0.0, np.sin(t)], [0.0, 1.0, 0.0], [-np.sin(t), 0.0, np.cos(t)]]
+    pose[0, 3] = x
+    return pose
+
+
+def _wall_disparity(distance: float = 6.0) -> np.ndarray:
+    return np.full((CAMERA.height, CAMERA.width), CAMERA.focal_baseline / distance)
+
+
+def test_make_view_caches_points_and_uncertainty() -> None:
+    disparity = _wall_disparity()
+    disparity[0, :5] = np.nan
+    disparity[1, :5] = -1.0
+    view = make_view(CAMERA, disparity, _pose(1.0), index=0, key="k", stamp=3.5, sigma_px=1.0)
+    assert view.valid.sum() == disparity.size - 10
+    np.testing.assert_allclose(view.points.reshape(CAMERA.height, CAMERA.width, 3), CAMERA.backproject(disparity))
+    assert np.all(np.isnan(view.u[~view.valid])) and np.all(view.u[view.valid] > 0)
+    np.testing.assert_allclose(view.centre, [1.0 + CAMERA.baseline / 2, 0.0, 0.0])
+    assert not support_count(view.support_bits).any()
+
+
+def test_support_count_counts_bits() -> None:
+    bits = np.array([0, 1, 0b1010, 2**63 + 1], dtype=np.uint64)
+    np.testing.assert_array_equal(support_count(bits), [0, 1, 2, 2])
+
+
+def test_keyframe_rule_skips_small_motion_only() -> None:
+    window = ViewWindow(3, min_translation=0.1, min_rotation_deg=2.0)
+    assert window.is_keyframe(_pose(0.0))
+    window.push(make_view(CAMERA, _wall_disparity(), _pose(0.0), index=0, key=0, stamp=0.0, sigma_px=1.0))
+    assert not window.is_keyframe(_pose(0.05, yaw_deg=1.0))
+    assert window.is_keyframe(_pose(0.15))
+    assert window.is_keyframe(_pose(0.0, yaw_deg=3.0))
+
+
+def test_window_memory_stays_bounded_and_labels_come_late() -> None:
+    params = LabelerParams(window_size=4, label_delay=2, keyframe_min_translation=0.0, keyframe_min_rotation_deg=0.0)
+    labeler = Labeler(CAMERA, params)
+    seen = []
+    for i in range(30):
+        results = labeler.add_view(_wall_disparity(), _pose(0.5 * i), stamp=10.0 + 0.1 * i, key=f"frame{i}")
+        assert len(labeler.window) <= params.window_size
+        expected = [] if i < params.label_delay else [f"frame{i - params.label_delay}"]
+        assert [r.key for r in results] == expected
+        for r in results:
+            j = int(str(r.key)[5:])
+            assert r.stamp == pytest.approx(10.0 + 0.1 * j)
+            assert r.labels.shape == (CAMERA.height, CAMERA.width) and r.labels.dtype == np.uint8
+        seen += [r.key for r in results]
+    rest = labeler.flush()
+    assert [r.key for r in rest] == [f"frame{i}" for i in range(30 - params.label_delay, 30)]
+    assert seen + [r.key for r in rest] == [f"frame{i}" for i in range(30)]
+    assert len(labeler.window) == 0
+    assert labeler.skipped_views == 0
+
+
+def test_skipped_views_are_counted_and_not_labelled() -> None:
+    labeler = Labeler(CAMERA, LabelerParams(window_size=3, label_delay=1, keyframe_min_translation=0.2))
+    keys = []
+    for i, x in enumerate([0.0, 0.05, 0.5, 0.52, 1.0]):
+        keys += [r.key for r in labeler.add_view(_wall_disparity(), _pose(x), stamp=float(i))]
+    keys += [r.key for r in labeler.flush()]
+    assert labeler.skipped_views == 2
+    assert keys == [0, 2, 4]  # default keys: the running number of add_view calls
+
+
+def test_label_delay_zero_labels_the_arriving_view() -> None:
+    labeler = Labeler(CAMERA, LabelerParams(window_size=2, label_delay=0))
+    assert [r.key for r in labeler.add_view(_wall_disparity(), _pose(0.0), stamp=0.0, key="a")] == ["a"]
+    assert labeler.flush() == []
+
+
+def test_bad_inputs_are_named() -> None:
+    labeler = Labeler(CAMERA)
+    with pytest.raises(SelfContraError, match="disparity has shape"):
+        labeler.add_view(np.zeros((5, 5)), np.eye(4), stamp=0.0)
+    with pytest.raises(SelfContraError, match="pose has shape"):
+        labeler.add_view(_wall_disparity(), np.eye(3), stamp=0.0)
+    skewed = np.eye(4)
+    skewed[0, 1] = 0.5
+    with pytest.raises(SelfContraError, match="rotation"):
+        labeler.add_view(_wall_disparity(), skewed, stamp=0.0)
+
+
+def test_params_validation_and_from_dict() -> None:
+    params = LabelerParams.from_dict({"window_size": 20, "label_delay": 10, "stage2_tolerance": "query"})
+    assert (params.window_size, params.label_delay, params.stage2_tolerance) == (20, 10, "query")
+    assert params.alpha_min_deg == LabelerParams().alpha_min_deg
+    with pytest.raises(ValueError, match=r"unknown labeler parameter.*'windw_size'"):
+        LabelerParams.from_dict({"windw_size": 3})
+    for bad in (
+        {"label_delay": 10},
+        {"window_size": 1},
+        {"alpha_min_deg": 0.5},
+        {"sigma_max": 0.0},
+        {"stage1_tolerance": "largest"},
+        {"stage3_tolerance": "x"},
+        {"window_size": 4.5},
+        {"keyframe_min_translation": -1.0},
+    ):
+        with pytest.raises(ValueError, match="LabelerParams"):
+            LabelerParams.from_dict(bad)
