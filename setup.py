@@ -54,6 +54,7 @@ setup(
     entry_points={
         "console_scripts": [
             "selfcontra = selfcontra_ros.cli:main",
+            "player = selfcontra_ros.ros.player_node:main",
         ],
     },
 )

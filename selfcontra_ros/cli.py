@@ -62,6 +62,26 @@ def _cmd_label(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_kitti2mcap(args: argparse.Namespace) -> int:
+    from selfcontra_ros.bags.kitti2mcap import DEFAULT_STAMP_OFFSET_NS, kitti_to_mcap
+    from selfcontra_ros.bags.reader import open_bag
+
+    offset_ns = DEFAULT_STAMP_OFFSET_NS if args.stamp_offset is None else round(args.stamp_offset * 1e9)
+    out = kitti_to_mcap(
+        Path(args.input),
+        Path(args.out),
+        frames=args.frames,
+        compress=args.compress,
+        color=args.color,
+        sequence=args.sequence,
+        stamp_offset_ns=offset_ns,
+    )
+    with open_bag(out) as bag:
+        topics = ", ".join(f"{t.name} ({t.message_count})" for t in bag.topics.values())
+    print(f"wrote {out}: {topics}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Return the argument parser of the ``selfcontra`` command."""
     parser = argparse.ArgumentParser(
@@ -84,6 +104,21 @@ def build_parser() -> argparse.ArgumentParser:
     label.add_argument("--params", default=None, help="parameter YAML (default: the package's config/labeler.yaml)")
     label.add_argument("--frames", type=_frame_range, default=None, help="frame range A:B (Python slice)")
     label.set_defaults(handler=_cmd_label)
+
+    k2m = sub.add_parser("kitti2mcap", help="convert a KITTI odometry sequence to a rosbag2 bag (MCAP storage)")
+    k2m.add_argument("input", help="KITTI odometry root (with sequences/XX) or a sequence folder")
+    k2m.add_argument("--out", required=True, help="bag folder to create (an existing path is never overwritten)")
+    k2m.add_argument("--frames", type=_frame_range, default=None, help="frame range A:B (Python slice; default all)")
+    k2m.add_argument("--sequence", default=None, help="sequence to take from a root holding several (e.g. 06)")
+    k2m.add_argument("--color", action="store_true", help="convert the colour pair image_2/image_3 (rgb8)")
+    k2m.add_argument("--compress", choices=("zstd", "none"), default="zstd", help="MCAP chunk compression")
+    k2m.add_argument(
+        "--stamp-offset",
+        type=float,
+        default=None,
+        help="seconds added to the sequence stamps (default 2011-09-26T00:00:00Z; 0 keeps times.txt as is)",
+    )
+    k2m.set_defaults(handler=_cmd_kitti2mcap)
     return parser
 
 

@@ -11,6 +11,7 @@ __all__ = [
     "CalibrationError",
     "ConversionError",
     "DatasetError",
+    "PoseError",
     "SelfContraError",
 ]
 
@@ -29,3 +30,7 @@ class ConversionError(SelfContraError):
 
 class DatasetError(SelfContraError):
     """A dataset folder or file is missing or malformed."""
+
+
+class PoseError(SelfContraError):
+    """A pose, rotation or quaternion is not finite or not rigid."""

@@ -9,14 +9,21 @@ frame into the world frame.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from selfcontra_ros.errors import CalibrationError
+from selfcontra_ros.errors import CalibrationError, PoseError
 
-__all__ = ["StereoCamera", "invert_pose", "transform_points"]
+__all__ = [
+    "StereoCamera",
+    "invert_pose",
+    "quaternion_from_rotation",
+    "rotation_from_quaternion",
+    "transform_points",
+]
 
 FloatArray = NDArray[np.floating]
 
@@ -217,3 +224,60 @@ def transform_points(pose: ArrayLike, points: ArrayLike) -> FloatArray:
     t = np.asarray(pose, dtype=np.float64)
     p = np.asarray(points, dtype=np.float64)
     return p @ t[:3, :3].T + t[:3, 3]
+
+
+def quaternion_from_rotation(rotation: ArrayLike) -> NDArray[np.float64]:
+    """Unit quaternion ``(x, y, z, w)`` of a 3x3 rotation matrix, with ``w >= 0``.
+
+    Shepperd's method: the quaternion component of largest magnitude is
+    computed from the diagonal (so its square root is never of a small,
+    cancellation-prone number) and the other three from off-diagonal sums and
+    differences divided by it. The result is normalised, so a matrix that is
+    slightly off orthonormal (text poses with 6-9 digits) gives the nearest
+    unit quaternion.
+
+    Raises:
+        PoseError: the input is not a finite 3x3 matrix with determinant near +1.
+    """
+    r = np.asarray(rotation, dtype=np.float64)
+    if r.shape != (3, 3) or not np.all(np.isfinite(r)):
+        raise PoseError(f"rotation must be a finite 3x3 matrix, got shape {r.shape}")
+    det = float(np.linalg.det(r))
+    if abs(det - 1.0) > 1e-3:
+        raise PoseError(f"rotation matrix has determinant {det:.6f}; expected +1 (a proper rotation)")
+    trace = r[0, 0] + r[1, 1] + r[2, 2]
+    # 4 q_i^2 - 1 for i = w, x, y, z; the largest gives the best-conditioned square root.
+    candidates = (trace, r[0, 0] - r[1, 1] - r[2, 2], r[1, 1] - r[0, 0] - r[2, 2], r[2, 2] - r[0, 0] - r[1, 1])
+    largest = int(np.argmax(candidates))
+    s = 2.0 * math.sqrt(max(1.0 + candidates[largest], 0.0))  # 4 * |q_largest|
+    if largest == 0:
+        q = (r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1], s * s / 4.0)
+    elif largest == 1:
+        q = (s * s / 4.0, r[0, 1] + r[1, 0], r[0, 2] + r[2, 0], r[2, 1] - r[1, 2])
+    elif largest == 2:
+        q = (r[0, 1] + r[1, 0], s * s / 4.0, r[1, 2] + r[2, 1], r[0, 2] - r[2, 0])
+    else:
+        q = (r[0, 2] + r[2, 0], r[1, 2] + r[2, 1], s * s / 4.0, r[1, 0] - r[0, 1])
+    quat = np.asarray(q, dtype=np.float64) / s
+    quat /= np.linalg.norm(quat)
+    return -quat if quat[3] < 0 else quat
+
+
+def rotation_from_quaternion(quaternion: ArrayLike) -> NDArray[np.float64]:
+    """3x3 rotation matrix of a quaternion ``(x, y, z, w)`` (normalised first).
+
+    Raises:
+        PoseError: the input is not 4 finite numbers of non-zero norm.
+    """
+    q = np.asarray(quaternion, dtype=np.float64).reshape(-1)
+    norm = float(np.linalg.norm(q)) if q.size == 4 else 0.0
+    if q.size != 4 or not np.all(np.isfinite(q)) or norm < 1e-12:
+        raise PoseError(f"quaternion must be 4 finite numbers (x, y, z, w) of non-zero norm, got {q!r}")
+    x, y, z, w = q / norm
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )

@@ -1,0 +1,213 @@
+"""Convert a KITTI odometry sequence (real or synthetic) into a rosbag2 bag with MCAP storage.
+
+Topics (names in :mod:`selfcontra_ros.bags.topics`), one message each per frame:
+
+==================================  ============================  ==============================================
+topic                               type                          content
+==================================  ============================  ==============================================
+``/stereo/left/image_rect``         sensor_msgs/Image             ``mono8`` (grey pair) or ``rgb8`` (``color``)
+``/stereo/right/image_rect``        sensor_msgs/Image             same encoding
+``/stereo/left/camera_info``        sensor_msgs/CameraInfo        rectified ``P`` of the left camera
+``/stereo/right/camera_info``       sensor_msgs/CameraInfo        ``P[0,3] = -fx * baseline``
+``/stereo/pose``                    geometry_msgs/PoseStamped     ``T_world_left`` in frame ``world`` (if poses)
+``/stereo/ground_truth/disparity``  stereo_msgs/DisparityImage    left disparity (if the sequence has ``disp_*``)
+==================================  ============================  ==============================================
+
+**Stamps.** Header stamps and bag log times are equal:
+``stamp_offset_ns + round(t * 1e9)`` with ``t`` the sequence stamp in seconds
+(``times.txt``, else 10 Hz from 0). The default offset,
+:data:`DEFAULT_STAMP_OFFSET_NS`, is 2011-09-26T00:00:00Z, the first KITTI
+recording day: frame 0 is then not ROS's "unset" time 0 (which ``/clock``
+consumers and tf treat specially) and tools show a plausible date; the
+offset is recorded in ``metadata.yaml`` (``custom_data``,
+``selfcontra.stamp_offset_ns``). Pass ``stamp_offset_ns=0`` to keep the
+sequence stamps as they are.
+
+**Ground truth.** The disparity image follows stereo_image_proc: ``32FC1``
+pixels, ``f = fx``, ``t = baseline``, ``min_disparity = 0``; pixels without
+ground truth hold ``min_disparity - 1`` (-1), so
+:func:`selfcontra_ros.ros.conversions.disparity_from_message` gives back NaN
+there. ``delta_d`` is 1/256 px, the resolution of KITTI disparity PNGs.
+
+**Failures.** The bag is written in a hidden staging folder beside ``out``
+and moved to ``out`` only once it is complete (see
+:class:`~selfcontra_ros.bags.writer.BagWriter`, atomic mode): an error or
+Ctrl-C part way leaves no bag at ``out`` (the staging folder is deleted). An
+existing ``out`` is never overwritten.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from rosbags.typesys.store import Typestore
+from tqdm import tqdm
+
+from selfcontra_ros.bags import topics
+from selfcontra_ros.bags.reader import BagError
+from selfcontra_ros.bags.writer import COMPRESSIONS, BagWriter
+from selfcontra_ros.datasets.kitti import StereoFrame, open_sequence
+from selfcontra_ros.errors import DatasetError
+from selfcontra_ros.geometry import StereoCamera, quaternion_from_rotation
+from selfcontra_ros.ros.conversions import camera_info_fields, image_fields
+
+__all__ = [
+    "DEFAULT_STAMP_OFFSET_NS",
+    "GT_DELTA_D",
+    "kitti_to_mcap",
+    "seconds_to_nanoseconds",
+]
+
+_NS_PER_S = 1_000_000_000
+#: 2011-09-26T00:00:00Z in nanoseconds since the epoch: the default offset added to sequence stamps.
+DEFAULT_STAMP_OFFSET_NS = 1_316_995_200 * _NS_PER_S
+#: Disparity resolution of the ground truth, pixels (KITTI PNGs store d * 256).
+GT_DELTA_D = 1.0 / 256.0
+
+
+# --------------------------------------------------------------------------- messages (rosbags types)
+
+
+def seconds_to_nanoseconds(seconds: float) -> int:
+    """Integer nanoseconds of ``seconds``, rounding the fraction only (exact for epoch-sized stamps)."""
+    whole = math.floor(seconds)
+    return whole * _NS_PER_S + round((seconds - whole) * _NS_PER_S)
+
+
+class _MessageFactory:
+    """Builds the bag's rosbags messages of one sequence (types looked up once)."""
+
+    def __init__(self, typestore: Typestore, camera: StereoCamera) -> None:
+        types = typestore.types
+        self._time = types["builtin_interfaces/msg/Time"]
+        self._header = types["std_msgs/msg/Header"]
+        self._image = types[topics.IMAGE_TYPE]
+        self._info = types[topics.CAMERA_INFO_TYPE]
+        self._roi = types["sensor_msgs/msg/RegionOfInterest"]
+        self._pose_stamped = types[topics.POSE_TYPE]
+        self._pose = types["geometry_msgs/msg/Pose"]
+        self._point = types["geometry_msgs/msg/Point"]
+        self._quaternion = types["geometry_msgs/msg/Quaternion"]
+        self._disparity = types[topics.DISPARITY_TYPE]
+        self.camera = camera
+
+    def header(self, stamp_ns: int, frame_id: str) -> Any:
+        sec, nanosec = divmod(stamp_ns, _NS_PER_S)
+        return self._header(stamp=self._time(sec=sec, nanosec=nanosec), frame_id=frame_id)
+
+    def image(self, pixels: NDArray[Any], encoding: str, stamp_ns: int, frame_id: str) -> Any:
+        fields = image_fields(pixels, encoding)
+        fields["data"] = np.frombuffer(fields["data"], dtype=np.uint8)
+        return self._image(header=self.header(stamp_ns, frame_id), **fields)
+
+    def camera_info(self, stamp_ns: int, frame_id: str, *, right: bool) -> Any:
+        fields = camera_info_fields(self.camera, right=right)
+        roi = self._roi(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+        return self._info(header=self.header(stamp_ns, frame_id), roi=roi, **fields)
+
+    def pose(self, pose: NDArray[np.float64], stamp_ns: int) -> Any:
+        x, y, z = (float(v) for v in pose[:3, 3])
+        qx, qy, qz, qw = (float(v) for v in quaternion_from_rotation(pose[:3, :3]))
+        return self._pose_stamped(
+            header=self.header(stamp_ns, topics.WORLD_FRAME),
+            pose=self._pose(position=self._point(x=x, y=y, z=z), orientation=self._quaternion(x=qx, y=qy, z=qz, w=qw)),
+        )
+
+    def disparity(self, disparity: NDArray[np.float32], stamp_ns: int, frame_id: str) -> Any:
+        cam = self.camera
+        d = np.asarray(disparity, dtype=np.float32).copy()
+        finite = np.isfinite(d)
+        min_disparity = 0.0
+        d[~finite] = np.float32(min_disparity - 1.0)  # stereo_image_proc's mark of "no disparity"
+        max_disparity = float(d[finite].max()) if finite.any() else min_disparity
+        return self._disparity(
+            header=self.header(stamp_ns, frame_id),
+            image=self.image(d, "32FC1", stamp_ns, frame_id),
+            f=float(cam.fx),
+            t=float(cam.baseline),
+            valid_window=self._roi(x_offset=0, y_offset=0, height=cam.height, width=cam.width, do_rectify=False),
+            min_disparity=min_disparity,
+            max_disparity=max_disparity,
+            delta_d=GT_DELTA_D,
+        )
+
+
+def _write_frame(bag: BagWriter, make: _MessageFactory, frame: StereoFrame, stamp_ns: int) -> None:
+    """Append one frame's messages, all stamped ``stamp_ns``, in the order of the module table."""
+    encoding = "rgb8" if frame.left.ndim == 3 else "mono8"
+    left, right = topics.LEFT_FRAME, topics.RIGHT_FRAME
+    bag.write(topics.bag_topic(topics.LEFT_IMAGE), stamp_ns, make.image(frame.left, encoding, stamp_ns, left))
+    bag.write(topics.bag_topic(topics.RIGHT_IMAGE), stamp_ns, make.image(frame.right, encoding, stamp_ns, right))
+    bag.write(topics.bag_topic(topics.LEFT_INFO), stamp_ns, make.camera_info(stamp_ns, left, right=False))
+    bag.write(topics.bag_topic(topics.RIGHT_INFO), stamp_ns, make.camera_info(stamp_ns, right, right=True))
+    if frame.pose is not None:
+        bag.write(topics.bag_topic(topics.POSE), stamp_ns, make.pose(frame.pose, stamp_ns))
+    if frame.gt_disparity is not None:
+        bag.write(topics.bag_topic(topics.GT_DISPARITY), stamp_ns, make.disparity(frame.gt_disparity, stamp_ns, left))
+
+
+def kitti_to_mcap(
+    src: Path | str,
+    out: Path | str,
+    *,
+    frames: slice | None = None,
+    compress: str = "zstd",
+    color: bool = False,
+    sequence: str | None = None,
+    stamp_offset_ns: int = DEFAULT_STAMP_OFFSET_NS,
+    progress: bool = True,
+) -> Path:
+    """Write a KITTI odometry sequence as a rosbag2 bag folder with MCAP storage (see the module docstring).
+
+    Args:
+        src: dataset root (``sequences/XX``) or sequence folder, as for
+            :func:`selfcontra_ros.datasets.kitti.open_sequence`.
+        out: bag folder to create (holds ``<name>.mcap`` and ``metadata.yaml``);
+            missing parent folders are created.
+        frames: which frames (a slice of frame indices, e.g. ``slice(0, 3)``); all when None.
+        compress: ``"zstd"`` (compressed MCAP chunks) or ``"none"``.
+        color: convert the colour pair (``image_2``/``image_3``, ``rgb8``)
+            instead of the grey one (``mono8``).
+        sequence: which sequence of a root holding several.
+        stamp_offset_ns: nanoseconds added to every sequence stamp.
+        progress: show a tqdm progress bar.
+
+    Returns:
+        The bag folder ``out``.
+
+    Raises:
+        BagError: ``out`` exists already, or the bag cannot be written.
+        DatasetError: the sequence cannot be read, or ``frames`` selects no frame.
+        CalibrationError: the sequence's calibration is not a rectified pair.
+    """
+    out = Path(out)
+    if compress not in COMPRESSIONS:
+        raise BagError(f"compress is {compress!r}; expected one of {', '.join(COMPRESSIONS)}")
+    if out.exists() or out.is_symlink():
+        raise BagError(f"output bag {out} exists already; remove it or choose another path (not overwriting)")
+    seq = open_sequence(src, sequence=sequence, color=color)
+    indices = range(len(seq))[frames if frames is not None else slice(None)]
+    if len(indices) == 0:
+        raise DatasetError(f"frames {frames} selects no frame of {seq} ({len(seq)} frames)")
+    stamps_ns = [int(stamp_offset_ns) + seconds_to_nanoseconds(float(seq.stamps[i])) for i in indices]
+    if any(b <= a for a, b in itertools.pairwise(stamps_ns)):
+        raise DatasetError(f"stamps of {seq.folder} (times.txt) are not strictly increasing over the chosen frames")
+
+    out.parent.mkdir(parents=True, exist_ok=True)
+    custom_data = {
+        "selfcontra.source": str(seq.folder.resolve()),
+        "selfcontra.sequence": seq.sequence,
+        "selfcontra.frames": f"{indices[0]}:{indices[-1] + 1}:{indices.step}",
+        "selfcontra.stamp_offset_ns": str(int(stamp_offset_ns)),
+    }
+    with BagWriter(out, compress=compress, atomic=True, custom_data=custom_data) as bag:
+        make = _MessageFactory(bag.typestore, seq.camera)
+        bar = tqdm(indices, desc=f"kitti2mcap {seq.sequence}", unit="frame", disable=not progress)
+        for i, stamp_ns in zip(bar, stamps_ns, strict=True):
+            _write_frame(bag, make, seq[i], stamp_ns)
+    return out
