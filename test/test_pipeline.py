@@ -1,0 +1,135 @@
+"""The offline ``selfcontra label`` run over a small synthetic sequence."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from selfcontra_ros.config import load_params
+from selfcontra_ros.datasets.kitti import open_sequence
+from selfcontra_ros.datasets.synthetic import write_sequence
+from selfcontra_ros.errors import SelfContraError
+from selfcontra_ros.evaluation.metrics import label_metrics, mean_metrics
+from selfcontra_ros.labeler import Labeler
+from selfcontra_ros.labels import colorize_labels
+from selfcontra_ros.matching.base import make_matcher
+from selfcontra_ros.pipeline import label_sequence
+
+FRAMES = 8
+WIDTH, HEIGHT = 320, 96
+
+
+@pytest.fixture(scope="module")
+def street(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    root = tmp_path_factory.mktemp("street")
+    write_sequence(root, scene="street", frames=FRAMES, seed=1, width=WIDTH, height=HEIGHT)
+    return root
+
+
+@pytest.fixture(scope="module")
+def labelled(street: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
+    out = tmp_path_factory.mktemp("labels")
+    return out, label_sequence(street, out)
+
+
+def test_writes_label_images_and_metrics(street: Path, labelled: tuple[Path, dict]) -> None:
+    out, report = labelled
+    on_disk = json.loads((out / "metrics.json").read_text())
+    frames = [entry["frame"] for entry in on_disk["frames"]]
+    assert frames and frames == sorted(frames)
+    assert set(frames) | set(on_disk["skipped_frames"]) == set(range(FRAMES))
+    assert sorted(p.name for p in (out / "labels").iterdir()) == [f"{i:06d}.png" for i in frames]
+    assert on_disk["has_ground_truth"] is True
+    assert on_disk["params"]["matcher"]["algorithm"] == "sgbm"
+
+    # Recompute each frame's figures from the written label image, a fresh SGBM run and the ground truth.
+    sequence = open_sequence(street)
+    matcher = make_matcher(load_params(None)[0])
+    for entry in on_disk["frames"]:
+        labels = cv2.imread(str(out / "labels" / f"{entry['frame']:06d}.png"), cv2.IMREAD_UNCHANGED)
+        assert labels.dtype == np.uint8 and labels.shape == (HEIGHT, WIDTH)
+        colour = cv2.imread(str(out / "labels_color" / f"{entry['frame']:06d}.png"), cv2.IMREAD_COLOR)
+        np.testing.assert_array_equal(colour[:, :, ::-1], colorize_labels(labels))
+        frame = sequence[entry["frame"]]
+        disparity = matcher.compute(frame.left, frame.right, with_right=False).left
+        assert frame.gt_disparity is not None
+        expected = label_metrics(labels, disparity, frame.gt_disparity)
+        for key, value in expected.items():
+            assert (entry[key] is None and math.isnan(value)) or entry[key] == pytest.approx(value), key
+    # The mean is the mean over frames of the per-frame values, NaN (null) skipped.
+    figures = [
+        {k: (math.nan if v is None else v) for k, v in e.items() if k not in ("frame", "stamp")}
+        for e in on_disk["frames"]
+    ]
+    for key, value in mean_metrics(figures).items():
+        assert (on_disk["mean"][key] is None and math.isnan(value)) or on_disk["mean"][key] == pytest.approx(value)
+    assert report["mean"]["coverage"] == pytest.approx(on_disk["mean"]["coverage"])
+    assert 0.0 < report["mean"]["coverage"] <= 1.0
+
+
+def test_labels_equal_a_direct_labeler_run(street: Path, labelled: tuple[Path, dict]) -> None:
+    """The pipeline adds nothing to the labels: the same Labeler fed by hand gives the same images."""
+    out, _ = labelled
+    matcher_params, labeler_params = load_params(None)
+    sequence = open_sequence(street)
+    matcher = make_matcher(matcher_params)
+    labeler = Labeler(sequence.camera, labeler_params)
+    results = []
+    for frame in sequence:
+        assert frame.pose is not None
+        disparity = matcher.compute(frame.left, frame.right, with_right=False).left
+        results += labeler.add_view(disparity, frame.pose, stamp=frame.stamp, key=frame.index)
+    results += labeler.flush()
+    assert results
+    for result in results:
+        written = cv2.imread(str(out / "labels" / f"{result.key:06d}.png"), cv2.IMREAD_UNCHANGED)
+        np.testing.assert_array_equal(written, result.labels)
+
+
+def test_frame_range_and_params_file(street: Path, tmp_path: Path) -> None:
+    params = tmp_path / "p.yaml"
+    params.write_text("labeler:\n  ros__parameters:\n    matcher:\n      algorithm: bm\n      block_size: 7\n")
+    report = label_sequence(street, tmp_path / "out", params_file=str(params), frames=slice(2, 6))
+    assert report["params"]["matcher"]["algorithm"] == "bm"
+    assert report["params"]["matcher"]["block_size"] == 7
+    assert {e["frame"] for e in report["frames"]} | set(report["skipped_frames"]) == {2, 3, 4, 5}
+
+
+def test_without_poses_is_a_clear_error(street: Path, tmp_path: Path) -> None:
+    copy = tmp_path / "noposes"
+    shutil.copytree(street, copy)
+    (copy / "poses" / "00.txt").unlink()
+    with pytest.raises(SelfContraError, match="no poses"):
+        label_sequence(copy, tmp_path / "out")
+
+
+def test_external_matcher_and_empty_range_are_rejected(street: Path, tmp_path: Path) -> None:
+    params = tmp_path / "p.yaml"
+    params.write_text("labeler:\n  ros__parameters:\n    matcher: {algorithm: external}\n")
+    with pytest.raises(SelfContraError, match="external"):
+        label_sequence(street, tmp_path / "out", params_file=str(params))
+    with pytest.raises(SelfContraError, match="selects no frame"):
+        label_sequence(street, tmp_path / "out", frames=slice(50, 60))
+
+
+def test_without_ground_truth_reports_label_shares(street: Path, tmp_path: Path) -> None:
+    copy = tmp_path / "nogt"
+    shutil.copytree(street, copy)
+    shutil.rmtree(copy / "sequences" / "00" / "disp_0")
+    report = label_sequence(copy, tmp_path / "out")
+    assert report["has_ground_truth"] is False
+    assert set(report["mean"]) == {
+        "query_valid_share",
+        "label_positive_share",
+        "label_negative_share",
+        "label_unknown_share",
+    }
+    for entry in report["frames"]:
+        total = entry["label_positive_share"] + entry["label_negative_share"] + entry["label_unknown_share"]
+        assert total == pytest.approx(1.0)
