@@ -51,9 +51,9 @@ from selfcontra_ros.config import load_params, params_to_dict
 from selfcontra_ros.datasets.kitti import OdometrySequence, StereoFrame, open_sequence
 from selfcontra_ros.errors import SelfContraError
 from selfcontra_ros.evaluation.metrics import label_metrics, label_shares, mean_metrics
-from selfcontra_ros.labeler import Labeler, LabelResult
+from selfcontra_ros.labeler import LabelResult
 from selfcontra_ros.labels import colorize_labels
-from selfcontra_ros.matching.base import make_matcher
+from selfcontra_ros.session import LabelingSession
 
 __all__ = ["LABELS_COLOR_DIR", "LABELS_DIR", "METRICS_FILE", "label_sequence"]
 
@@ -107,10 +107,9 @@ def _evaluate(result: LabelResult, pending: _Pending) -> dict[str, float]:
 
 
 def _run(
-    sequence: OdometrySequence, indices: range, labeler: Labeler, params: Any, out_dir: Path
+    sequence: OdometrySequence, indices: range, session: LabelingSession, out_dir: Path
 ) -> Iterator[tuple[int, float, dict[str, float]]]:
     """Match and label the frames; yield ``(index, stamp, figures)`` per labelled frame, in labelling order."""
-    matcher = make_matcher(params)
     pending: dict[int, _Pending] = {}
     stamps: dict[int, float] = {}
 
@@ -124,17 +123,12 @@ def _run(
         frame: StereoFrame = sequence[index]
         if frame.pose is None:
             raise SelfContraError(f"frame {index} of {sequence.root} has no pose")
-        disparity = matcher.compute(frame.left, frame.right, with_right=False).left
-        pending[index] = _Pending(disparity=disparity, gt_disparity=frame.gt_disparity)
-        stamps[index] = frame.stamp
-        skipped_before = labeler.skipped_views
-        results = labeler.add_view(disparity, frame.pose, stamp=frame.stamp, key=index)
-        if labeler.skipped_views > skipped_before:
-            # The keyframe rule dropped this view: it will never be labelled.
-            pending.pop(index)
-            stamps.pop(index)
-        yield from release(results)
-    yield from release(labeler.flush())
+        output = session.process(frame.left, frame.right, frame.pose, stamp=frame.stamp, key=index)
+        if not output.skipped:  # a view the keyframe rule dropped is never labelled
+            pending[index] = _Pending(disparity=output.disparity, gt_disparity=frame.gt_disparity)
+            stamps[index] = frame.stamp
+        yield from release(output.labelled)
+    yield from release(session.flush())
 
 
 def label_sequence(
@@ -181,10 +175,8 @@ def label_sequence(
     for sub in (LABELS_DIR, LABELS_COLOR_DIR):
         (out_dir / sub).mkdir(parents=True, exist_ok=True)
 
-    labeler = Labeler(sequence.camera, labeler_params)
-    per_frame: list[tuple[int, float, dict[str, float]]] = list(
-        _run(sequence, indices, labeler, matcher_params, out_dir)
-    )
+    session = LabelingSession(sequence.camera, matcher_params, labeler_params)
+    per_frame: list[tuple[int, float, dict[str, float]]] = list(_run(sequence, indices, session, out_dir))
     per_frame.sort(key=lambda item: item[0])
     labelled = {index for index, _, _ in per_frame}
     has_gt = any("accuracy" in figures for _, _, figures in per_frame)
