@@ -82,7 +82,7 @@ def test_invalid_values_and_malformed_files(tmp_path: Path) -> None:
     with pytest.raises(SelfContraError, match="num_disparities") as info:
         load_params(path)
     assert str(path) in str(info.value)
-    path = _write(tmp_path / "bad2.yaml", {"labeler": {"label_delay": 12}})
+    path = _write(tmp_path / "bad2.yaml", {"labeler": {"label_delay": 25}})
     with pytest.raises(SelfContraError, match="label_delay"):
         load_params(path)
     with pytest.raises(SelfContraError, match="cannot read"):

@@ -107,7 +107,7 @@ def test_params_validation_and_from_dict() -> None:
     with pytest.raises(ValueError, match=r"unknown labeler parameter.*'windw_size'"):
         LabelerParams.from_dict({"windw_size": 3})
     for bad in (
-        {"label_delay": 10},
+        {"label_delay": 20},  # = the default window_size: out of range
         {"window_size": 1},
         {"alpha_min_deg": 0.5},
         {"sigma_max": 0.0},
