@@ -24,8 +24,8 @@ $(STAMP): setup.py setup.cfg constraints.txt
 venv: $(STAMP)
 
 lint: $(STAMP)
-	$(BIN)/ruff check selfcontra_ros test bench
-	$(BIN)/ruff format --check selfcontra_ros test bench
+	$(BIN)/ruff check selfcontra_ros test bench docs bags launch
+	$(BIN)/ruff format --check selfcontra_ros test bench docs bags launch
 
 typecheck: $(STAMP)
 	$(BIN)/mypy selfcontra_ros
@@ -34,6 +34,10 @@ unit: $(STAMP)
 	$(BIN)/python -m pytest -q
 
 test: lint typecheck unit
+
+# Sample bags from synthetic scenes (and from KITTI: make bags KITTI=path/to/kitti_odometry).
+bags: $(STAMP)
+	$(BIN)/python bags/make_bags.py --out bags $(if $(KITTI),--kitti $(KITTI))
 
 DEMO_OUT ?= demo_out
 demo: $(STAMP)

@@ -64,6 +64,7 @@ setup(
         "console_scripts": [
             "selfcontra = selfcontra_ros.cli:main",
             "player = selfcontra_ros.ros.player_node:main",
+            "labeler = selfcontra_ros.ros.labeler_node:main",
         ],
     },
 )

@@ -51,14 +51,40 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_label(args: argparse.Namespace) -> int:
-    from selfcontra_ros.pipeline import label_sequence
+def _is_bag(path: Path) -> bool:
+    """Whether ``path`` is a rosbag2 bag (a folder with metadata.yaml, or an .mcap file)."""
+    return (path.is_dir() and (path / "metadata.yaml").is_file()) or (path.is_file() and path.suffix == ".mcap")
 
-    metrics = label_sequence(Path(args.input), Path(args.out), params_file=args.params, frames=args.frames)
+
+def _cmd_label(args: argparse.Namespace) -> int:
+    source, out = Path(args.input), Path(args.out)
+    if _is_bag(source):
+        from selfcontra_ros.bags.label_bag import label_bag, metrics_path
+
+        if args.frames is not None:
+            raise SelfContraError("--frames applies to sequence folders; a bag is labelled whole")
+        metrics = label_bag(
+            source,
+            out,
+            params_file=args.params,
+            sync=args.sync,
+            slop=args.slop,
+            namespace=args.namespace,
+            pose_topic=args.pose_topic,
+            disparity_topic=args.disparity_topic,
+        )
+        written = f"wrote the labelled bag {out} and {metrics_path(out)}"
+    else:
+        from selfcontra_ros.pipeline import label_sequence
+
+        metrics = label_sequence(source, out, params_file=args.params, frames=args.frames)
+        written = f"wrote labels and metrics.json to {out}"
     mean = metrics.get("mean", {})
     if mean:
         print("mean: " + ", ".join(f"{k}={v:.4f}" for k, v in mean.items() if isinstance(v, float)))
-    print(f"wrote labels and metrics.json to {args.out}")
+    if metrics.get("dropped"):
+        print("dropped messages: " + ", ".join(f"{k}={v}" for k, v in metrics["dropped"].items()))
+    print(written)
     return 0
 
 
@@ -98,11 +124,22 @@ def build_parser() -> argparse.ArgumentParser:
     synth.add_argument("--out", required=True, help="output dataset root (sequences/00, poses/00.txt)")
     synth.set_defaults(handler=_cmd_synth)
 
-    label = sub.add_parser("label", help="label a KITTI-layout sequence with the self-contradiction labeler")
-    label.add_argument("input", help="sequence folder (dataset root or sequences/XX)")
-    label.add_argument("--out", required=True, help="output folder for label images and metrics.json")
+    label = sub.add_parser(
+        "label",
+        help="label a KITTI-layout sequence or a rosbag2 bag with the self-contradiction labeler",
+        description="A sequence folder gives label PNGs and metrics.json in OUT; a bag (folder with "
+        "metadata.yaml, or .mcap) gives a new MCAP bag OUT with the input and the labeler's output topics.",
+    )
+    label.add_argument("input", help="sequence folder (dataset root or sequences/XX) or a rosbag2 bag")
+    label.add_argument("--out", required=True, help="output folder (sequence) or output bag (bag input)")
     label.add_argument("--params", default=None, help="parameter YAML (default: the package's config/labeler.yaml)")
-    label.add_argument("--frames", type=_frame_range, default=None, help="frame range A:B (Python slice)")
+    label.add_argument("--frames", type=_frame_range, default=None, help="frame range A:B (sequences only)")
+    bag_options = label.add_argument_group("bag input")
+    bag_options.add_argument("--sync", choices=("exact", "approximate"), default="exact", help="image pairing")
+    bag_options.add_argument("--slop", type=float, default=0.0, help="approximate sync tolerance, seconds")
+    bag_options.add_argument("--namespace", default=None, help="input namespace (default: found in the bag)")
+    bag_options.add_argument("--pose-topic", default=None, help="PoseStamped or Odometry topic (default NS/pose)")
+    bag_options.add_argument("--disparity-topic", default=None, help="external DisparityImage topic")
     label.set_defaults(handler=_cmd_label)
 
     k2m = sub.add_parser("kitti2mcap", help="convert a KITTI odometry sequence to a rosbag2 bag (MCAP storage)")

@@ -44,7 +44,7 @@ __all__ = [
 DEFAULT_FILE = "labeler.yaml"
 
 #: Node keys accepted at the top of a parameter file, in order of preference.
-NODE_NAMES = ("labeler", "/**")
+NODE_NAMES = ("labeler", "/**/labeler", "/**")
 
 #: Parameter sections and the dataclass each one fills.
 SECTIONS: dict[str, type] = {"matcher": MatcherParams, "labeler": LabelerParams}

@@ -55,7 +55,15 @@ from selfcontra_ros.labeler import LabelResult
 from selfcontra_ros.labels import colorize_labels
 from selfcontra_ros.session import LabelingSession
 
-__all__ = ["LABELS_COLOR_DIR", "LABELS_DIR", "METRICS_FILE", "label_sequence"]
+__all__ = [
+    "LABELS_COLOR_DIR",
+    "LABELS_DIR",
+    "METRICS_FILE",
+    "PendingView",
+    "evaluate_view",
+    "json_safe",
+    "label_sequence",
+]
 
 LABELS_DIR = "labels"
 LABELS_COLOR_DIR = "labels_color"
@@ -63,7 +71,7 @@ METRICS_FILE = "metrics.json"
 
 
 @dataclass
-class _Pending:
+class PendingView:
     """What the evaluation of a view needs once the labeler releases it."""
 
     disparity: NDArray[np.float32]
@@ -75,12 +83,12 @@ def _frame_indices(sequence: OdometrySequence, frames: slice | None) -> range:
     return indices[frames] if frames is not None else indices
 
 
-def _json_safe(value: Any) -> Any:
+def json_safe(value: Any) -> Any:
     """Return ``value`` with NaN/inf floats as ``None`` and numpy scalars as Python numbers."""
     if isinstance(value, dict):
-        return {str(k): _json_safe(v) for k, v in value.items()}
+        return {str(k): json_safe(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
+        return [json_safe(v) for v in value]
     if isinstance(value, np.generic):
         value = value.item()
     if isinstance(value, float) and not math.isfinite(value):
@@ -100,7 +108,8 @@ def _write_labels(out_dir: Path, index: int, labels: NDArray[np.uint8]) -> None:
     _write_png(out_dir / LABELS_COLOR_DIR / name, np.ascontiguousarray(colorize_labels(labels)[:, :, ::-1]))
 
 
-def _evaluate(result: LabelResult, pending: _Pending) -> dict[str, float]:
+def evaluate_view(result: LabelResult, pending: PendingView) -> dict[str, float]:
+    """Figures of one labelled view: label metrics with ground truth, else the label shares."""
     if pending.gt_disparity is None:
         return label_shares(result.labels, pending.disparity)
     return label_metrics(result.labels, pending.disparity, pending.gt_disparity, stage2_labels=result.stage2_labels)
@@ -110,14 +119,14 @@ def _run(
     sequence: OdometrySequence, indices: range, session: LabelingSession, out_dir: Path
 ) -> Iterator[tuple[int, float, dict[str, float]]]:
     """Match and label the frames; yield ``(index, stamp, figures)`` per labelled frame, in labelling order."""
-    pending: dict[int, _Pending] = {}
+    pending: dict[int, PendingView] = {}
     stamps: dict[int, float] = {}
 
     def release(results: list[LabelResult]) -> Iterator[tuple[int, float, dict[str, float]]]:
         for result in results:
             index = cast(int, result.key)  # _run passes the frame index as the key
             _write_labels(out_dir, index, result.labels)
-            yield index, stamps.pop(index), _evaluate(result, pending.pop(index))
+            yield index, stamps.pop(index), evaluate_view(result, pending.pop(index))
 
     for index in tqdm(indices, desc="label", unit="frame"):
         frame: StereoFrame = sequence[index]
@@ -125,7 +134,7 @@ def _run(
             raise SelfContraError(f"frame {index} of {sequence.root} has no pose")
         output = session.process(frame.left, frame.right, frame.pose, stamp=frame.stamp, key=index)
         if not output.skipped:  # a view the keyframe rule dropped is never labelled
-            pending[index] = _Pending(disparity=output.disparity, gt_disparity=frame.gt_disparity)
+            pending[index] = PendingView(disparity=output.disparity, gt_disparity=frame.gt_disparity)
             stamps[index] = frame.stamp
         yield from release(output.labelled)
     yield from release(session.flush())
@@ -191,6 +200,6 @@ def label_sequence(
         "runtime_s": time.perf_counter() - started,
     }
     (out_dir / METRICS_FILE).write_text(
-        json.dumps(_json_safe(report), indent=2, allow_nan=False) + "\n", encoding="utf-8"
+        json.dumps(json_safe(report), indent=2, allow_nan=False) + "\n", encoding="utf-8"
     )
     return report

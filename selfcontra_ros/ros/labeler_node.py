@@ -1,0 +1,908 @@
+"""Labeler node: self-contradiction labels (and the query algorithm's depth) of a live stereo stream.
+
+Run::
+
+    ros2 run selfcontra_ros labeler --ros-args --params-file config/labeler.yaml -r __ns:=/stereo
+    python -m selfcontra_ros.ros.labeler_node --ros-args --params-file config/labeler.yaml -r __ns:=/stereo
+
+The node drives one :class:`~selfcontra_ros.session.LabelingSession`, the
+object the offline bag and sequence labelers use too, so the same frames give
+the same labels whichever way they arrive.
+
+**Inputs** (relative names, :mod:`selfcontra_ros.bags.topics`): ``left/image_rect``
+and ``right/image_rect`` (``mono8``, ``rgb8`` or ``bgr8``), ``left/camera_info``
+and ``right/camera_info``, and the pose ``T_world_left``: ``pose``
+(geometry_msgs/PoseStamped) or ``odom`` (nav_msgs/Odometry, its child frame
+must be the left optical frame), chosen by ``pose_source``. With
+``matcher.algorithm: external`` the images are not subscribed: each
+``disparity`` (stereo_msgs/DisparityImage) message of an external stereo
+algorithm is one view.
+
+**Synchronisation.** Images and camera infos are grouped by header stamp
+(left image first; ``sync: exact`` needs equal stamps, ``approximate`` accepts
+``slop`` seconds) by :class:`~selfcontra_ros.bags.sync.StampSynchronizer`, as
+stereo_image_proc does, so a frame is processed whatever order its four
+messages arrive in. The pose at the left image's stamp comes from
+:class:`~selfcontra_ros.bags.sync.PoseBuffer` (linear translation, slerp
+rotation between the bracketing poses, at most ``max_pose_gap`` s apart). A
+frame newer than the newest pose waits for it; it is given up (and counted)
+once a frame more than ``max_pose_gap`` s newer has arrived without the pose
+stream reaching it (the stream stopped).
+
+**Outputs** (the left image's frame id on all of them):
+
+* ``depth`` (32FC1 metres, NaN invalid, REP 118) and ``disparity``
+  (stereo_msgs/DisparityImage; not in external mode, where it is the input), published from the subscription callback as
+  soon as a frame is matched, with the frame's stamp;
+* ``labels`` (mono8: 0 unknown, 1 positive, 2 negative) and ``labels/color``
+  (rgb8), published by the labeling worker ``label_delay`` views later, with
+  the *labelled view's* stamp;
+* with ``publish_debug``: ``debug/support`` (mono8, distinct angle bins of
+  Stage 1), ``debug/vote_sum`` (32FC1, Stage-2 vote sum, 0 where no vote) and
+  ``debug/uncertainty`` (32FC1, largest covariance eigenvalue, m^2, NaN invalid);
+* ``~/stats`` (std_msgs/String, JSON, transient-local): drop counters per
+  reason and progress counters, every ``stats_period`` s and at shutdown.
+
+**Threads and queues.** The executor thread runs the subscriptions: it
+synchronises, converts, runs :meth:`LabelingSession.match` (milliseconds at
+VGA size) and publishes the depth at once; it never waits for labeling. A
+view with its pose goes to a labeling worker thread through a bounded queue
+of ``label_queue_size`` views. **Policy when labeling falls behind:** a view
+that finds the queue full is skipped (never labelled, its depth was already
+published) and counted as ``label_queue_full``; the views already queued are
+kept, so the labeler's window sees the stream thinned, not reordered. Memory
+is bounded everywhere: ``queue_size`` messages per synchronised topic, as many
+frames waiting for their pose, 1000 poses, ``label_queue_size`` views, and the
+labeler's own window.
+
+**Robustness.** A message that cannot be used is dropped, counted under a
+reason in ``~/stats`` (``drops``) and logged at most every 5 s per reason:
+``bad_image`` (unsupported encoding or malformed data), ``bad_camera_info``
+(a camera info pair that does not describe one rectified camera),
+``size_mismatch`` (image and camera info sizes differ), ``bad_pose`` (NaN or
+non-rigid pose), ``pose_backwards`` / ``stamp_backwards`` (stamps not
+increasing), ``unsynced`` (no partner within the slop, or a queue overflow,
+e.g. a topic that stopped), ``pose_none_yet`` / ``pose_before_buffer`` /
+``pose_after_buffer`` / ``pose_gap`` (no pose within ``max_pose_gap`` of the
+image stamp), ``pose_wait_overflow``, ``label_queue_full``, ``session_reset``
+(views of the old session dropped at a camera change or a time jump),
+``bad_disparity`` and
+``error`` (anything unexpected, logged with the reason; the node carries on).
+A camera change (camera infos describing another calibration) starts a new
+session (logged, counted in ``camera_resets``): views of the old session still
+waiting for their pose or in the label queue are dropped (``session_reset``),
+and the old window goes with its session, so its last ``label_delay`` views
+are never labelled. Image stamps jumping back by more than ``time_jump_reset``
+s (a bag played in a loop, a restarted driver) reset the synchroniser, the
+poses and the session the same way (counted in ``time_jumps``).
+
+**Parameters** (read once at start; invalid values stop the node with exit code 2):
+
+``matcher.*``, ``labeler.*``
+    the core's parameters (:class:`~selfcontra_ros.matching.base.MatcherParams`,
+    :class:`~selfcontra_ros.labeler.LabelerParams`), defaults and meaning as in
+    ``config/labeler.yaml``; ``--params-file`` sets them.
+``pose_source`` (``pose``), ``sync`` (``exact``), ``slop`` (0.0 s, 0..1)
+    see above; ``slop`` needs ``sync: approximate``.
+``queue_size`` (10, 1..1000)
+    messages per synchronised topic, frames waiting for their pose, and the
+    subscriptions' history depth.
+``label_queue_size`` (4, 1..1000)
+    views waiting for the labeling worker.
+``max_pose_gap`` (0.5 s), ``max_pose_extrapolation`` (0.05 s)
+    pose interpolation limits (see above).
+``time_jump_reset`` (1.0 s, 0 = never)
+    image stamps jumping back by more than this reset the node's state.
+``input_qos`` (``sensor_data``)
+    ``sensor_data`` (best effort: serves best-effort and reliable publishers)
+    or ``reliable`` (nothing lost between reliable nodes, e.g. the player).
+``publish_debug`` (false), ``stats_period`` (1.0 s), ``flush_on_shutdown`` (false).
+
+**Shutdown.** SIGINT and SIGTERM stop the node cleanly (exit code 0). By
+default the views still queued or waiting in the window are *not* labelled
+(shutdown stays fast; they are counted as ``shutdown_discarded``); with
+``flush_on_shutdown`` the worker labels the queued views and then flushes the
+session's window (:meth:`LabelingSession.flush`) before the node exits, which
+takes one labeling per waiting view. Exit codes: 0 stopped, 2 invalid parameters.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import queue
+import signal
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from types import FrameType
+from typing import Any
+
+import numpy as np
+import rclpy
+from numpy.typing import NDArray
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.duration import Duration
+from rclpy.exceptions import ParameterException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.logging import get_logger
+from rclpy.node import Node
+from rclpy.publisher import Publisher
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
+
+from selfcontra_ros.bags import topics
+from selfcontra_ros.bags.sync import SYNC_MODES, Match, PoseBuffer, StampSynchronizer
+from selfcontra_ros.config import from_ros_parameters, params_to_dict, to_ros_parameters
+from selfcontra_ros.errors import CalibrationError, ConversionError, PoseError, SelfContraError
+from selfcontra_ros.geometry import StereoCamera
+from selfcontra_ros.labeler import LabelerParams, LabelResult
+from selfcontra_ros.labels import colorize_labels
+from selfcontra_ros.matching.base import MatcherParams
+from selfcontra_ros.ros.conversions import (
+    disparity_from_message,
+    disparity_image,
+    image_to_numpy,
+    nanoseconds_to_stamp,
+    numpy_to_image,
+    stamp_to_nanoseconds,
+    stereo_camera_from_camera_infos,
+)
+from selfcontra_ros.ros.environment import prepare_ros_environment
+from selfcontra_ros.session import LabelingSession
+
+__all__ = ["DROP_REASONS", "LabelerConfigError", "LabelerNode", "ViewKey", "main"]
+
+NODE_NAME = "labeler"
+#: Relative topic of the odometry pose source.
+ODOM = "odom"
+#: Relative topic of the node's statistics (JSON), in the node's private namespace.
+STATS = "~/stats"
+DEBUG_SUPPORT = "debug/support"
+DEBUG_VOTE_SUM = "debug/vote_sum"
+DEBUG_UNCERTAINTY = "debug/uncertainty"
+
+POSE_SOURCES = ("pose", "odom")
+INPUT_QOS = ("sensor_data", "reliable")
+
+#: Every reason a message or view can be dropped for (keys of the ``drops`` counters in ``~/stats``).
+DROP_REASONS = (
+    "bad_image",
+    "bad_camera_info",
+    "size_mismatch",
+    "bad_disparity",
+    "bad_pose",
+    "pose_backwards",
+    "stamp_backwards",
+    "unsynced",
+    "pose_none_yet",
+    "pose_before_buffer",
+    "pose_after_buffer",
+    "pose_gap",
+    "pose_wait_overflow",
+    "label_queue_full",
+    "session_reset",
+    "shutdown_discarded",
+    "error",
+)
+
+# Image encodings the matcher takes; bgr8 is flipped to RGB (OpenCV's grey conversion weights the channels).
+_IMAGE_ENCODINGS = ("mono8", "rgb8", "bgr8")
+# At most one warning per drop reason in this many seconds.
+_WARN_PERIOD_S = 5.0
+# Poses kept: 10 s of a 100 Hz odometry.
+_POSE_CAPACITY = 1000
+# How long shutdown waits for a labeling in progress (one labeling at KITTI size takes ~1 s).
+_JOIN_TIMEOUT_S = 10.0
+_STATS_LOG_PERIOD_S = 30.0
+# Upper bound of the wait for reliable subscribers' acknowledgements of the flushed labels at shutdown.
+_ACK_TIMEOUT_S = 2.0
+
+
+class LabelerConfigError(SelfContraError):
+    """A parameter of the labeler node is invalid."""
+
+
+@dataclass(frozen=True)
+class ViewKey:
+    """Identity of one view, kept with it through the labeler: the header of its left image.
+
+    Attributes:
+        stamp_ns: header stamp, integer nanoseconds.
+        frame_id: header frame id (the left optical frame).
+    """
+
+    stamp_ns: int
+    frame_id: str
+
+
+@dataclass
+class _View:
+    """A matched frame on its way to the labeler (waiting for its pose, then in the label queue)."""
+
+    session: LabelingSession
+    key: ViewKey
+    disparity: NDArray[np.float32]
+    pose: NDArray[np.float64] | None = None
+
+
+def _descriptor(description: str, **kwargs: Any) -> ParameterDescriptor:
+    # Read once at start: read-only, so that a runtime change is refused rather than silently ignored.
+    return ParameterDescriptor(description=description, read_only=True, **kwargs)
+
+
+def _float_range(low: float, high: float) -> list[FloatingPointRange]:
+    return [FloatingPointRange(from_value=low, to_value=high, step=0.0)]
+
+
+def _int_range(low: int, high: int, step: int = 1) -> list[IntegerRange]:
+    return [IntegerRange(from_value=low, to_value=high, step=step)]
+
+
+# Ranges of the core parameters the descriptors can express; the dataclasses check everything else.
+_CORE_INT_RANGES: dict[str, list[IntegerRange]] = {
+    "matcher.num_disparities": _int_range(16, 1024, 16),
+    "matcher.block_size": _int_range(1, 255),
+    "labeler.window_size": _int_range(2, 1000),
+    "labeler.label_delay": _int_range(0, 999),
+    "labeler.min_positive_votes": _int_range(1, 1000),
+}
+
+
+def _pixels(msg: Any, side: str) -> NDArray[np.uint8]:
+    """The pixels of a rectified image message as the matcher takes them: HxW grey or HxWx3 RGB uint8.
+
+    Raises:
+        ConversionError: the encoding is not mono8/rgb8/bgr8, or the message is malformed.
+    """
+    encoding = str(msg.encoding)
+    if encoding not in _IMAGE_ENCODINGS:
+        raise ConversionError(f"{side} image encoding is {encoding!r}; expected one of {', '.join(_IMAGE_ENCODINGS)}")
+    pixels = image_to_numpy(msg)
+    return pixels[:, :, ::-1].copy() if encoding == "bgr8" else pixels
+
+
+def _info_key(msg: Any) -> tuple[Any, ...]:
+    """What identifies a camera info's calibration (a change of it means another camera)."""
+    return (int(msg.width), int(msg.height), tuple(float(v) for v in msg.p))
+
+
+class LabelerNode(Node):
+    """Matches every synchronised stereo frame and labels its views off the subscription thread.
+
+    See the module docstring for topics, parameters, threads and drop reasons.
+
+    Attributes:
+        drops: drop reason -> count (also published on ``~/stats``).
+        counts: progress counters (frames matched, views labelled, ...).
+    """
+
+    def __init__(self, **kwargs: Any) -> None:
+        """Declare and read the parameters, create publishers, subscriptions, timers and the labeling worker.
+
+        Raises:
+            LabelerConfigError: a parameter is invalid.
+        """
+        super().__init__(NODE_NAME, **kwargs)
+        self._lock = threading.Lock()
+        self.drops: dict[str, int] = dict.fromkeys(DROP_REASONS, 0)
+        self.counts: dict[str, int] = {
+            "frames": 0,
+            "depth_published": 0,
+            "views_queued": 0,
+            "views_labelled": 0,
+            "keyframe_skipped": 0,
+            "labels_published": 0,
+            "camera_resets": 0,
+            "time_jumps": 0,
+        }
+        self._warned: dict[str, float] = {}
+        self._worker: threading.Thread | None = None
+        self._stop = threading.Event()
+        try:
+            self._declare_parameters()
+            self._read_parameters()
+            self._create_io()
+        except BaseException:
+            super().destroy_node()
+            raise
+        self._worker = threading.Thread(target=self._label_worker, name="selfcontra_labeling", daemon=True)
+        self._worker.start()
+
+    # ------------------------------------------------------------------ parameters
+
+    def _declare_parameters(self) -> None:
+        for name, default in to_ros_parameters(MatcherParams(), LabelerParams()).items():
+            section, _, key = name.partition(".")
+            cls = "MatcherParams" if section == "matcher" else "LabelerParams"
+            extra: dict[str, Any] = {}
+            if name in _CORE_INT_RANGES:
+                extra["integer_range"] = _CORE_INT_RANGES[name]
+            if isinstance(default, float):
+                # A YAML "10" for a float parameter would otherwise be refused as an integer.
+                extra["dynamic_typing"] = True
+            self.declare_parameter(name, default, _descriptor(f"see selfcontra_ros {cls}.{key}", **extra))
+        self.declare_parameter(
+            "pose_source",
+            "pose",
+            _descriptor(
+                "pose topic: 'pose' (geometry_msgs/PoseStamped) or 'odom' (nav_msgs/Odometry), T_world_left",
+                additional_constraints="pose or odom",
+            ),
+        )
+        self.declare_parameter(
+            "sync",
+            "exact",
+            _descriptor("image/camera-info synchronisation", additional_constraints="exact or approximate"),
+        )
+        self.declare_parameter(
+            "slop",
+            0.0,
+            _descriptor(
+                "largest stamp difference to the left image, seconds (approximate sync)",
+                floating_point_range=_float_range(0.0, 1.0),
+            ),
+        )
+        self.declare_parameter(
+            "queue_size",
+            10,
+            _descriptor(
+                "messages queued per synchronised topic, and frames waiting for their pose",
+                integer_range=_int_range(1, 1000),
+            ),
+        )
+        self.declare_parameter(
+            "label_queue_size",
+            4,
+            _descriptor(
+                "views waiting for the labeling worker; a view finding it full is skipped (label_queue_full)",
+                integer_range=_int_range(1, 1000),
+            ),
+        )
+        self.declare_parameter(
+            "max_pose_gap",
+            0.5,
+            _descriptor(
+                "seconds: poses interpolated at an image stamp may be at most this far apart, and a frame waits "
+                "at most this much newer image time for its pose",
+                floating_point_range=_float_range(0.0, 60.0),
+            ),
+        )
+        self.declare_parameter(
+            "max_pose_extrapolation",
+            0.05,
+            _descriptor(
+                "seconds past the newest pose a given-up frame may still be extrapolated (0: never)",
+                floating_point_range=_float_range(0.0, 1.0),
+            ),
+        )
+        self.declare_parameter(
+            "time_jump_reset",
+            1.0,
+            _descriptor(
+                "image stamps going back by more than this many seconds reset the node's state (0: never)",
+                floating_point_range=_float_range(0.0, 1.0e6),
+            ),
+        )
+        self.declare_parameter("publish_debug", False, _descriptor("publish debug/support, vote_sum, uncertainty"))
+        self.declare_parameter(
+            "input_qos",
+            "sensor_data",
+            _descriptor(
+                "subscription QoS: sensor_data (best effort) or reliable",
+                additional_constraints="sensor_data or reliable",
+            ),
+        )
+        self.declare_parameter(
+            "stats_period",
+            1.0,
+            _descriptor("seconds between ~/stats messages", floating_point_range=_float_range(0.01, 3600.0)),
+        )
+        self.declare_parameter(
+            "flush_on_shutdown",
+            False,
+            _descriptor("at shutdown, label the queued views and flush the window before exiting"),
+        )
+
+    def _read_parameters(self) -> None:
+        names = list(to_ros_parameters(MatcherParams(), LabelerParams()))
+        values = {name: self.get_parameter(name).value for name in names}
+        try:
+            self.matcher_params, self.labeler_params = from_ros_parameters(values)
+        except SelfContraError as exc:
+            raise LabelerConfigError(str(exc)) from exc
+        p = self.get_parameter
+        self._pose_source = str(p("pose_source").value)
+        self._sync_mode = str(p("sync").value)
+        self._slop = float(p("slop").value)
+        self._queue_size = int(p("queue_size").value)
+        self._label_queue_size = int(p("label_queue_size").value)
+        self._max_pose_gap = float(p("max_pose_gap").value)
+        self._max_extrapolation = float(p("max_pose_extrapolation").value)
+        self._time_jump_ns = round(float(p("time_jump_reset").value) * 1e9)
+        self._publish_debug = bool(p("publish_debug").value)
+        self._input_qos = str(p("input_qos").value)
+        self._stats_period = float(p("stats_period").value)
+        self._flush_on_shutdown = bool(p("flush_on_shutdown").value)
+        for name, value, choices in (
+            ("pose_source", self._pose_source, POSE_SOURCES),
+            ("sync", self._sync_mode, SYNC_MODES),
+            ("input_qos", self._input_qos, INPUT_QOS),
+        ):
+            if value not in choices:
+                raise LabelerConfigError(f"parameter {name!r} is {value!r}; expected one of {', '.join(choices)}")
+        if self._sync_mode == "exact" and self._slop != 0.0:
+            raise LabelerConfigError(f"parameter 'slop' is {self._slop:g} s with sync 'exact'; use sync:=approximate")
+        self._external = self.matcher_params.algorithm == "external"
+
+    # ------------------------------------------------------------------ topics
+
+    def _create_io(self) -> None:
+        from geometry_msgs.msg import PoseStamped
+        from nav_msgs.msg import Odometry
+        from sensor_msgs.msg import CameraInfo, Image
+        from std_msgs.msg import String
+        from stereo_msgs.msg import DisparityImage
+
+        depth = max(self._queue_size, 5)
+        reliability = ReliabilityPolicy.BEST_EFFORT if self._input_qos == "sensor_data" else ReliabilityPolicy.RELIABLE
+        qos_in = QoSProfile(
+            history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=reliability, durability=DurabilityPolicy.VOLATILE
+        )
+        qos_out = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        qos_stats = QoSProfile(
+            history=HistoryPolicy.KEEP_LAST,
+            depth=1,
+            reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL,
+        )
+
+        self._depth_pub: Publisher[Any] = self.create_publisher(Image, topics.DEPTH, qos_out)
+        # In external mode ``disparity`` is the input: the node does not publish on it.
+        self._disparity_pub: Publisher[Any] | None = (
+            None if self._external else self.create_publisher(DisparityImage, topics.DISPARITY, qos_out)
+        )
+        self._labels_pub: Publisher[Any] = self.create_publisher(Image, topics.LABELS, qos_out)
+        self._color_pub: Publisher[Any] = self.create_publisher(Image, topics.LABELS_COLOR, qos_out)
+        self._debug_pubs: dict[str, Publisher[Any]] = {}
+        if self._publish_debug:
+            for name in (DEBUG_SUPPORT, DEBUG_VOTE_SUM, DEBUG_UNCERTAINTY):
+                self._debug_pubs[name] = self.create_publisher(Image, name, qos_out)
+        self._stats_pub: Publisher[Any] = self.create_publisher(String, STATS, qos_stats)
+        self._string_type = String
+
+        # The pivot (first key) gives the frame's stamp: the left image, or the external disparity.
+        pivot = "disparity" if self._external else "left"
+        keys = (pivot, "left_info", "right_info") if self._external else ("left", "right", "left_info", "right_info")
+        self._keys = keys
+        self._sync = StampSynchronizer(keys, mode=self._sync_mode, slop=self._slop, queue_size=self._queue_size)
+        self._poses = PoseBuffer(_POSE_CAPACITY)
+        self._awaiting_pose: list[_View] = []
+        self._newest_frame_ns: int | None = None
+        self._camera_key: tuple[Any, ...] | None = None
+        self._camera: StereoCamera | None = None
+        self._session: LabelingSession | None = None
+        self._label_queue: queue.Queue[_View | None] = queue.Queue(maxsize=self._label_queue_size)
+
+        if self._external:
+            self.create_subscription(DisparityImage, topics.DISPARITY, self._callback("disparity"), qos_in)
+        else:
+            self.create_subscription(Image, topics.LEFT_IMAGE, self._callback("left"), qos_in)
+            self.create_subscription(Image, topics.RIGHT_IMAGE, self._callback("right"), qos_in)
+        self.create_subscription(CameraInfo, topics.LEFT_INFO, self._callback("left_info"), qos_in)
+        self.create_subscription(CameraInfo, topics.RIGHT_INFO, self._callback("right_info"), qos_in)
+        if self._pose_source == "pose":
+            self.create_subscription(PoseStamped, topics.POSE, self._on_pose, qos_in)
+        else:
+            self.create_subscription(Odometry, ODOM, self._on_pose, qos_in)
+        self._stats_timer = self.create_timer(self._stats_period, self.publish_stats)
+        self._last_stats_log = time.monotonic()
+        self._last_logged_stats: str | None = None
+        self.get_logger().info(
+            f"labeling {'external disparities' if self._external else 'stereo images'} "
+            f"({self.matcher_params.algorithm}), pose from '{self._pose_source}', sync {self._sync_mode}"
+            + (f" (slop {self._slop:g} s)" if self._sync_mode == "approximate" else "")
+            + f", window {self.labeler_params.window_size}, delay {self.labeler_params.label_delay}"
+        )
+
+    # ------------------------------------------------------------------ counters and logs
+
+    def _drop(self, reason: str, message: str, count: int = 1) -> None:
+        """Count ``count`` drops under ``reason`` and warn, at most once per reason every few seconds."""
+        with self._lock:
+            self.drops[reason] = self.drops.get(reason, 0) + count
+        now = time.monotonic()
+        if now - self._warned.get(reason, -math.inf) >= _WARN_PERIOD_S:
+            self._warned[reason] = now
+            self.get_logger().warning(f"dropped ({reason}): {message}")
+
+    def _count(self, name: str, n: int = 1) -> None:
+        with self._lock:
+            self.counts[name] = self.counts.get(name, 0) + n
+
+    def stats(self) -> dict[str, Any]:
+        """Drop counters (own reasons plus the synchroniser's), progress counters and queue fill, JSON-ready."""
+        with self._lock:
+            drops = dict(self.drops)
+            counts = dict(self.counts)
+        sync_dropped = {str(k): int(v) for k, v in self._sync.dropped.items()}
+        sync_backwards = {str(k): int(v) for k, v in self._sync.backwards.items()}
+        drops["unsynced"] += sum(sync_dropped.values())
+        drops["stamp_backwards"] += sum(sync_backwards.values())
+        drops["pose_backwards"] += self._poses.out_of_order
+        return {
+            "drops": drops,
+            "counts": counts,
+            "sync_dropped": sync_dropped,
+            "sync_backwards": sync_backwards,
+            "label_queue": self._label_queue.qsize(),
+            "awaiting_pose": len(self._awaiting_pose),
+            "params": params_to_dict(self.matcher_params, self.labeler_params),
+        }
+
+    def publish_stats(self) -> None:
+        """Publish :meth:`stats` on ``~/stats``; log them now and then when they changed."""
+        text = json.dumps(self.stats(), sort_keys=True)
+        msg = self._string_type()
+        msg.data = text
+        try:
+            self._stats_pub.publish(msg)
+        except Exception:  # the context may be shutting down
+            return
+        now = time.monotonic()
+        if now - self._last_stats_log >= _STATS_LOG_PERIOD_S and text != self._last_logged_stats:
+            self._last_stats_log = now
+            self._last_logged_stats = text
+            self.get_logger().info(f"stats: {self._summary()}")
+
+    def _summary(self) -> str:
+        stats = self.stats()
+        drops = {k: v for k, v in stats["drops"].items() if v}
+        return f"{json.dumps(stats['counts'], sort_keys=True)}, drops {json.dumps(drops, sort_keys=True)}"
+
+    # ------------------------------------------------------------------ subscription side
+
+    def _callback(self, key: str) -> Any:
+        def on_message(msg: Any) -> None:
+            try:
+                self._on_synced_message(key, msg)
+            except SelfContraError as exc:
+                self._drop("error", f"{key}: {exc}")
+            except Exception as exc:  # never die on input: log and carry on
+                self._drop("error", f"{key}: unexpected {type(exc).__name__}: {exc}")
+
+        return on_message
+
+    def _on_synced_message(self, key: str, msg: Any) -> None:
+        stamp_ns = stamp_to_nanoseconds(msg.header.stamp)
+        newest = self._newest_frame_ns
+        if key == self._keys[0] and newest is not None and 0 < self._time_jump_ns < newest - stamp_ns:
+            self._reset_stream(stamp_ns)
+        result = self._sync.push(key, stamp_ns, msg)
+        if not result.accepted:
+            self._warn_once("stamp_backwards", f"{key} stamp {stamp_ns} ns is not newer than the previous one")
+        for match in result.matches:
+            self._on_frame(match)
+
+    def _warn_once(self, reason: str, message: str) -> None:
+        """Rate-limited warning for drops counted elsewhere (synchroniser, pose buffer)."""
+        now = time.monotonic()
+        if now - self._warned.get(reason, -math.inf) >= _WARN_PERIOD_S:
+            self._warned[reason] = now
+            self.get_logger().warning(f"dropped ({reason}): {message}")
+
+    def _reset_stream(self, stamp_ns: int) -> None:
+        """Time went back (bag loop, restarted driver): start over with empty queues, poses and session."""
+        self.get_logger().warning(
+            f"image stamps jumped back by {(self._newest_frame_ns or 0) - stamp_ns:,} ns: resetting synchroniser, "
+            "poses and labeling session"
+        )
+        self._count("time_jumps")
+        self._sync.reset()
+        out_of_order = self._poses.out_of_order
+        self._poses = PoseBuffer(_POSE_CAPACITY)
+        self._poses.out_of_order = out_of_order  # keep the counter running
+        if self._awaiting_pose:
+            self._drop("session_reset", "time jump", len(self._awaiting_pose))
+            self._awaiting_pose.clear()
+        self._newest_frame_ns = None
+        with self._lock:
+            self._session = None
+            self._camera = None
+            self._camera_key = None
+
+    def _on_frame(self, match: Match) -> None:
+        """One synchronised frame: convert, match, publish depth and disparity, queue the view for its pose."""
+        items = dict(zip(self._keys, match.items, strict=True))
+        session = self._session_for(items["left_info"], items["right_info"])
+        if session is None:
+            return
+        camera = session.camera
+        pivot = items[self._keys[0]]
+        frame_id = str(pivot.header.frame_id)
+        try:
+            if self._external:
+                disparity_in, _, _ = disparity_from_message(pivot)
+                if disparity_in.shape != (camera.height, camera.width):
+                    self._drop(
+                        "size_mismatch",
+                        f"disparity is {disparity_in.shape[1]}x{disparity_in.shape[0]}, "
+                        f"camera_info says {camera.width}x{camera.height}",
+                    )
+                    return
+                left = right = np.zeros((camera.height, camera.width), np.uint8)
+                disparity, depth = session.match(left, right, external_disparity=disparity_in)
+            else:
+                left, right = _pixels(items["left"], "left"), _pixels(items["right"], "right")
+                for side, image in (("left", left), ("right", right)):
+                    if image.shape[:2] != (camera.height, camera.width):
+                        self._drop(
+                            "size_mismatch",
+                            f"{side} image is {image.shape[1]}x{image.shape[0]}, "
+                            f"camera_info says {camera.width}x{camera.height}",
+                        )
+                        return
+                if left.shape != right.shape:
+                    self._drop("bad_image", f"left image {left.shape} and right image {right.shape} differ")
+                    return
+                disparity, depth = session.match(left, right)
+        except ConversionError as exc:
+            self._drop("bad_disparity" if self._external else "bad_image", str(exc))
+            return
+        self._count("frames")
+        stamp = nanoseconds_to_stamp(match.stamp_ns)
+        self._depth_pub.publish(numpy_to_image(depth, "32FC1", stamp=stamp, frame_id=frame_id))
+        p = self.matcher_params
+        if self._disparity_pub is None:
+            self._after_match(session, match.stamp_ns, frame_id, disparity)
+            return
+        self._disparity_pub.publish(
+            disparity_image(
+                disparity,
+                camera,
+                stamp=stamp,
+                frame_id=frame_id,
+                min_disparity=float(p.min_disparity),
+                max_disparity=float(p.min_disparity + p.num_disparities),
+            )
+        )
+        self._after_match(session, match.stamp_ns, frame_id, disparity)
+
+    def _after_match(
+        self, session: LabelingSession, stamp_ns: int, frame_id: str, disparity: NDArray[np.float32]
+    ) -> None:
+        """Queue a matched view until its pose is known."""
+        self._count("depth_published")
+        self._newest_frame_ns = stamp_ns
+        self._awaiting_pose.append(_View(session, ViewKey(stamp_ns, frame_id), disparity))
+        if len(self._awaiting_pose) > self._queue_size:
+            dropped = self._awaiting_pose.pop(0)
+            self._drop("pose_wait_overflow", f"frame at {dropped.key.stamp_ns} ns waited too long for its pose")
+        self._release_views()
+
+    def _session_for(self, left_info: Any, right_info: Any) -> LabelingSession | None:
+        """The session of the camera the infos describe; a new one (logged) when the calibration changed."""
+        key = (_info_key(left_info), _info_key(right_info))
+        if key == self._camera_key and self._session is not None:
+            return self._session
+        try:
+            camera = stereo_camera_from_camera_infos(left_info, right_info)
+        except CalibrationError as exc:
+            self._drop("bad_camera_info", str(exc))
+            return None
+        self._camera_key = key
+        if self._session is not None and camera == self._camera:
+            return self._session  # same calibration, e.g. only the stamps or the K of the infos differ
+        session = LabelingSession(camera, self.matcher_params, self.labeler_params)
+        if self._session is not None:
+            self._count("camera_resets")
+            self.get_logger().warning(
+                f"camera changed ({self._camera.width}x{self._camera.height} -> {camera.width}x{camera.height}, "
+                f"fx {self._camera.fx:g} -> {camera.fx:g}, baseline {self._camera.baseline:g} -> "
+                f"{camera.baseline:g} m): starting a new labeling session"
+                if self._camera is not None
+                else "camera changed: starting a new labeling session"
+            )
+            if self._awaiting_pose:
+                self._drop("session_reset", "views of the previous camera", len(self._awaiting_pose))
+                self._awaiting_pose.clear()
+        else:
+            self.get_logger().info(
+                f"camera: {camera.width}x{camera.height}, fx {camera.fx:g} px, baseline {camera.baseline:g} m"
+            )
+        with self._lock:
+            self._camera = camera
+            self._session = session
+        return session
+
+    def _on_pose(self, msg: Any) -> None:
+        try:
+            if not self._poses.add_message(msg):
+                self._warn_once("pose_backwards", "pose stamp is not newer than the previous pose")
+                return
+            self._release_views()
+        except PoseError as exc:
+            self._drop("bad_pose", str(exc))
+        except SelfContraError as exc:
+            self._drop("error", f"pose: {exc}")
+        except Exception as exc:
+            self._drop("error", f"pose: unexpected {type(exc).__name__}: {exc}")
+
+    def _release_views(self) -> None:
+        """Give their pose to the waiting frames (oldest first) and queue them for labeling.
+
+        A frame whose stamp the pose stream has not reached waits, unless a
+        frame more than ``max_pose_gap`` s newer has arrived already (the pose
+        stream stopped or lags too far): then it is looked up one last time
+        (extrapolating at most ``max_pose_extrapolation`` s) and dropped when
+        that fails.
+        """
+        while self._awaiting_pose:
+            view = self._awaiting_pose[0]
+            stamp = view.key.stamp_ns
+            newest_pose = self._poses.newest_ns
+            if newest_pose is None or newest_pose < stamp:
+                waited_ns = (self._newest_frame_ns or stamp) - stamp
+                if waited_ns <= round(self._max_pose_gap * 1e9):
+                    return  # the pose may still come
+                extrapolation = self._max_extrapolation
+            else:
+                extrapolation = 0.0
+            lookup = self._poses.lookup(stamp, max_gap_s=self._max_pose_gap, max_extrapolation_s=extrapolation)
+            self._awaiting_pose.pop(0)
+            if lookup.pose is None:
+                reason = lookup.reason.value if lookup.reason is not None else "pose_none_yet"
+                self._drop(reason, f"no pose within {self._max_pose_gap:g} s of the frame at {stamp} ns")
+                continue
+            view.pose = lookup.pose
+            self._poses.discard_before(stamp)
+            try:
+                self._label_queue.put_nowait(view)
+            except queue.Full:
+                self._drop("label_queue_full", f"labeling is behind; view at {stamp} ns skipped")
+                continue
+            self._count("views_queued")
+
+    # ------------------------------------------------------------------ labeling worker
+
+    def _label_worker(self) -> None:
+        """Label the queued views in order and publish their labels (runs on its own thread)."""
+        while True:
+            view = self._label_queue.get()
+            if view is None:
+                return
+            if self._stop.is_set() and not self._flush_on_shutdown:
+                self._drop("shutdown_discarded", "node stopping", 1)
+                continue
+            try:
+                self._label_view(view)
+            except SelfContraError as exc:
+                self._drop("error", f"labeling the view at {view.key.stamp_ns} ns: {exc}")
+            except Exception as exc:
+                self._drop(
+                    "error", f"labeling the view at {view.key.stamp_ns} ns: unexpected {type(exc).__name__}: {exc}"
+                )
+
+    def _label_view(self, view: _View) -> None:
+        with self._lock:
+            current = self._session
+        if view.session is not current:
+            self._drop("session_reset", f"view at {view.key.stamp_ns} ns belongs to the previous camera")
+            return
+        assert view.pose is not None
+        results, skipped = view.session.label(view.disparity, view.pose, stamp=view.key.stamp_ns / 1e9, key=view.key)
+        self._count("views_labelled")
+        if skipped:
+            self._count("keyframe_skipped")
+        for result in results:
+            self._publish_labels(result)
+
+    def _publish_labels(self, result: LabelResult) -> None:
+        """Publish the labels (and debug maps) of one view with its own header."""
+        key = result.key
+        assert isinstance(key, ViewKey)
+        stamp = nanoseconds_to_stamp(key.stamp_ns)
+        frame_id = key.frame_id
+        self._labels_pub.publish(numpy_to_image(result.labels, "mono8", stamp=stamp, frame_id=frame_id))
+        self._color_pub.publish(numpy_to_image(colorize_labels(result.labels), "rgb8", stamp=stamp, frame_id=frame_id))
+        if self._debug_pubs:
+            maps = (
+                (DEBUG_SUPPORT, result.support, "mono8"),
+                (DEBUG_VOTE_SUM, result.vote_sum.astype(np.float32), "32FC1"),
+                (DEBUG_UNCERTAINTY, result.uncertainty.astype(np.float32), "32FC1"),
+            )
+            for name, image, encoding in maps:
+                self._debug_pubs[name].publish(numpy_to_image(image, encoding, stamp=stamp, frame_id=frame_id))
+        self._count("labels_published")
+
+    # ------------------------------------------------------------------ shutdown
+
+    def stop(self) -> None:
+        """Stop the labeling worker; with ``flush_on_shutdown`` label what is queued and flush the window first.
+
+        Safe to call more than once. Frames still waiting for their pose are discarded.
+        """
+        if self._worker is None:
+            return
+        worker, self._worker = self._worker, None
+        self._stop.set()
+        if self._awaiting_pose:
+            self._drop("shutdown_discarded", "node stopping", len(self._awaiting_pose))
+            self._awaiting_pose.clear()
+        try:
+            # Waits only while the queue is full: the worker frees a slot after the view it is labeling.
+            self._label_queue.put(None, timeout=_JOIN_TIMEOUT_S)
+        except queue.Full:
+            self.get_logger().error("the labeling worker does not take views any more; exiting without it")
+        worker.join(timeout=_JOIN_TIMEOUT_S)
+        if self._flush_on_shutdown and not worker.is_alive():
+            with self._lock:
+                session = self._session
+            if session is not None:
+                try:
+                    for result in session.flush():
+                        self._publish_labels(result)
+                except Exception as exc:
+                    self.get_logger().error(f"flushing the labeling window failed: {type(exc).__name__}: {exc}")
+        self.publish_stats()
+        if self._flush_on_shutdown:
+            self._wait_for_acknowledgements()
+        self.get_logger().info(f"stopped: {self._summary()}")
+
+    def _wait_for_acknowledgements(self, timeout_s: float = _ACK_TIMEOUT_S) -> None:
+        """Give reliable subscribers up to ``timeout_s`` in all to acknowledge the last labels before the node goes."""
+        deadline = time.monotonic() + timeout_s
+        for publisher in (self._labels_pub, self._color_pub, self._stats_pub, *self._debug_pubs.values()):
+            remaining = max(deadline - time.monotonic(), 0.0)
+            try:
+                publisher.wait_for_all_acked(Duration(nanoseconds=round(remaining * 1e9)))
+            except Exception:  # best effort: the context may be going down
+                return
+
+    def destroy_node(self) -> None:
+        """Stop the worker, then destroy the node."""
+        self.stop()
+        super().destroy_node()
+
+
+def main(args: list[str] | None = None) -> int:
+    """Run the labeler until SIGINT or SIGTERM; return the process exit code (0 stopped, 2 bad parameters)."""
+    prepare_ros_environment()
+    # Own signal handling: the context must stay up after Ctrl-C so that the worker can publish while stopping.
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    logger = get_logger(NODE_NAME)
+    stop = threading.Event()
+
+    def request_stop(signum: int, frame: FrameType | None) -> None:
+        stop.set()
+        # A second Ctrl-C interrupts at once, e.g. a long flush_on_shutdown.
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+    previous = {sig: signal.signal(sig, request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    node: LabelerNode | None = None
+    code = 0
+    executor = SingleThreadedExecutor()
+    try:
+        node = LabelerNode()
+        executor.add_node(node)
+        while not stop.is_set() and rclpy.ok():
+            executor.spin_once(timeout_sec=0.1)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except (LabelerConfigError, ParameterException) as exc:
+        logger.error(f"invalid parameters: {exc}")
+        code = 2
+    finally:
+        if node is not None:
+            executor.remove_node(node)
+            node.destroy_node()
+        executor.shutdown()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        rclpy.try_shutdown()
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,440 @@
+"""The labeler node over a real ROS 2 graph: depth of every frame, labels of the labelled views, parameters, shutdown.
+
+The reference is a :class:`LabelingSession` run in the test on the same frames
+with the same parameters: the node must give exactly its depth and labels.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from numpy.typing import NDArray
+
+from selfcontra_ros.bags import topics
+from selfcontra_ros.config import load_params
+from selfcontra_ros.datasets.synthetic import make_scene
+from selfcontra_ros.geometry import StereoCamera, quaternion_from_rotation
+from selfcontra_ros.labels import colorize_labels
+from selfcontra_ros.session import LabelingSession
+
+pytestmark = pytest.mark.ros
+
+FRAMES = 8
+DELAY = 3
+FRAME_ID = "cam_left_optical"
+STAMP0_NS = 1_700_000_000 * 1_000_000_000
+PERIOD_NS = 100_000_000
+NODE = ["-m", "selfcontra_ros.ros.labeler_node", "--ros-args"]
+# Small and fast: each labeling takes well under 0.1 s at 320x96.
+PARAMS_YAML = f"""\
+labeler:
+  ros__parameters:
+    matcher:
+      num_disparities: 64
+    labeler:
+      window_size: 6
+      label_delay: {DELAY}
+"""
+
+
+@dataclass
+class Frames:
+    """A short synthetic stereo sequence with its camera and poses (T_world_left)."""
+
+    camera: StereoCamera
+    left: list[NDArray[np.uint8]]
+    right: list[NDArray[np.uint8]]
+    poses: list[NDArray[np.float64]]
+
+    def stamp_ns(self, k: int) -> int:
+        return STAMP0_NS + k * PERIOD_NS
+
+
+@pytest.fixture(scope="module")
+def frames() -> Frames:
+    scene = make_scene("street", 2, 320, 96, frames=FRAMES)
+    rendered = [scene.render(k) for k in range(FRAMES)]
+    return Frames(
+        scene.camera, [f.left for f in rendered], [f.right for f in rendered], [scene.pose(k) for k in range(FRAMES)]
+    )
+
+
+@pytest.fixture(scope="module")
+def params_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("labeler_params") / "labeler.yaml"
+    path.write_text(PARAMS_YAML)
+    return path
+
+
+def reference(frames: Frames, params_file: Path) -> tuple[list[NDArray[np.float32]], dict[Any, Any]]:
+    """Depth of every frame and label results by frame index, from a session run directly on the frames."""
+    matcher, labeler = load_params(params_file)
+    session = LabelingSession(frames.camera, matcher, labeler)
+    depths, results = [], {}
+    for k in range(len(frames.left)):
+        out = session.process(frames.left[k], frames.right[k], frames.poses[k], stamp=frames.stamp_ns(k) / 1e9, key=k)
+        depths.append(out.depth)
+        results.update({r.key: r for r in out.labelled})
+    results.update({r.key: r for r in session.flush()})
+    return depths, results
+
+
+# --------------------------------------------------------------------------- test-side publisher and recorder
+
+
+class Feeder:
+    """Publishes frames to the labeler's input topics (reliable QoS, deep history: nothing lost in the test)."""
+
+    def __init__(self, node: Any, *, odom: bool = False) -> None:
+        from geometry_msgs.msg import PoseStamped
+        from nav_msgs.msg import Odometry
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from sensor_msgs.msg import CameraInfo, Image
+
+        qos = QoSProfile(depth=500, reliability=ReliabilityPolicy.RELIABLE)
+        self.odom = odom
+        self.left = node.create_publisher(Image, topics.LEFT_IMAGE, qos)
+        self.right = node.create_publisher(Image, topics.RIGHT_IMAGE, qos)
+        self.left_info = node.create_publisher(CameraInfo, topics.LEFT_INFO, qos)
+        self.right_info = node.create_publisher(CameraInfo, topics.RIGHT_INFO, qos)
+        self._pose_type = Odometry if odom else PoseStamped
+        self.pose = node.create_publisher(self._pose_type, "odom" if odom else topics.POSE, qos)
+
+    def matched(self) -> bool:
+        """Whether the labeler subscribed to every input."""
+        publishers = (self.left, self.right, self.left_info, self.right_info, self.pose)
+        return all(p.get_subscription_count() >= 1 for p in publishers)
+
+    def infos(self, camera: StereoCamera, stamp_ns: int, *, mangle: Callable[[Any], None] | None = None) -> None:
+        from selfcontra_ros.ros.conversions import camera_infos_from_stereo_camera, nanoseconds_to_stamp
+
+        left, right = camera_infos_from_stereo_camera(camera, nanoseconds_to_stamp(stamp_ns), FRAME_ID)
+        if mangle is not None:
+            mangle(left)
+        self.left_info.publish(left)
+        self.right_info.publish(right)
+
+    def images(
+        self,
+        left: NDArray[Any],
+        right: NDArray[Any],
+        stamp_ns: int,
+        *,
+        encoding: str = "mono8",
+        right_stamp_ns: int | None = None,
+    ) -> None:
+        from selfcontra_ros.ros.conversions import nanoseconds_to_stamp, numpy_to_image
+
+        stamp = nanoseconds_to_stamp(stamp_ns)
+        self.left.publish(numpy_to_image(left, encoding, stamp=stamp, frame_id=FRAME_ID))
+        rstamp = stamp if right_stamp_ns is None else nanoseconds_to_stamp(right_stamp_ns)
+        self.right.publish(numpy_to_image(right, encoding, stamp=rstamp, frame_id=FRAME_ID))
+
+    def send_pose(self, pose: NDArray[np.float64], stamp_ns: int, *, quaternion: Any = None) -> None:
+        """Publish ``pose`` (its rotation as a quaternion, or ``quaternion`` as given) stamped ``stamp_ns``."""
+        from selfcontra_ros.ros.conversions import nanoseconds_to_stamp
+
+        msg = self._pose_type()
+        msg.header.stamp = nanoseconds_to_stamp(stamp_ns)
+        msg.header.frame_id = topics.WORLD_FRAME
+        target = msg.pose.pose if self.odom else msg.pose
+        if self.odom:
+            msg.child_frame_id = FRAME_ID
+        target.position.x, target.position.y, target.position.z = (float(v) for v in pose[:3, 3])
+        q = quaternion_from_rotation(pose[:3, :3]) if quaternion is None else quaternion
+        o = target.orientation
+        o.x, o.y, o.z, o.w = (float(v) for v in q)
+        self.pose.publish(msg)
+
+    def frame(self, frames: Frames, k: int, *, pose_first: bool = False, stamp_ns: int | None = None) -> None:
+        """Frame ``k``: infos, images and pose (the pose before or after the images)."""
+        stamp = frames.stamp_ns(k) if stamp_ns is None else stamp_ns
+        if pose_first:
+            self.send_pose(frames.poses[k], stamp)
+        self.infos(frames.camera, stamp)
+        self.images(frames.left[k], frames.right[k], stamp)
+        if not pose_first:
+            self.send_pose(frames.poses[k], stamp)
+
+
+class Recorder:
+    """Collects the labeler's outputs (deserialised) and its latest stats."""
+
+    def __init__(self, node: Any) -> None:
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+        from sensor_msgs.msg import Image
+        from std_msgs.msg import String
+        from stereo_msgs.msg import DisparityImage
+
+        qos = QoSProfile(depth=500, reliability=ReliabilityPolicy.RELIABLE)
+        outputs = {
+            topics.DEPTH: Image,
+            topics.DISPARITY: DisparityImage,
+            topics.LABELS: Image,
+            topics.LABELS_COLOR: Image,
+            "debug/support": Image,
+            "debug/vote_sum": Image,
+            "debug/uncertainty": Image,
+        }
+        self.received: dict[str, list[Any]] = {name: [] for name in outputs}
+        self.subscriptions = {
+            name: node.create_subscription(msg_type, name, self.received[name].append, qos)
+            for name, msg_type in outputs.items()
+        }
+        self.stats: dict[str, Any] | None = None
+        stats_qos = QoSProfile(
+            depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL
+        )
+        self.subscriptions["stats"] = node.create_subscription(String, "/labeler/stats", self._on_stats, stats_qos)
+
+    def _on_stats(self, msg: Any) -> None:
+        self.stats = json.loads(msg.data)
+
+    def count(self, name: str) -> int:
+        return len(self.received[name])
+
+    def matched(self) -> bool:
+        """Whether the labeler's depth and label publishers reach this recorder."""
+        return all(self.subscriptions[n].get_publisher_count() >= 1 for n in (topics.DEPTH, topics.LABELS))
+
+
+def stamp_ns(msg: Any) -> int:
+    return int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
+
+
+def check_outputs(recorder: Recorder, frames: Frames, params_file: Path, *, flushed: bool) -> None:
+    """Depth of every frame and labels of the labelled views equal the reference session's, with the right headers."""
+    from selfcontra_ros.ros.conversions import disparity_from_message, image_to_numpy
+
+    depths, results = reference(frames, params_file)
+    n_frames = len(frames.left)
+    depth_msgs = recorder.received[topics.DEPTH]
+    assert [stamp_ns(m) for m in depth_msgs] == [frames.stamp_ns(k) for k in range(n_frames)]
+    for k, msg in enumerate(depth_msgs):
+        assert msg.header.frame_id == FRAME_ID and msg.encoding == "32FC1"
+        depth = image_to_numpy(msg)
+        assert np.array_equal(depth, depths[k], equal_nan=True), f"depth of frame {k} differs from the session's"
+        # The depth is the camera's disparity_to_depth of the published disparity.
+        disparity, f, t = disparity_from_message(recorder.received[topics.DISPARITY][k])
+        assert (f, t) == pytest.approx((frames.camera.fx, frames.camera.baseline))
+        assert np.array_equal(frames.camera.disparity_to_depth(disparity).astype(np.float32), depth, equal_nan=True)
+    labelled = n_frames if flushed else n_frames - DELAY
+    label_msgs = recorder.received[topics.LABELS]
+    assert [stamp_ns(m) for m in label_msgs] == [frames.stamp_ns(k) for k in range(labelled)]
+    for k, msg in enumerate(label_msgs):
+        assert msg.header.frame_id == FRAME_ID and msg.encoding == "mono8"
+        labels = image_to_numpy(msg)
+        assert np.array_equal(labels, results[k].labels), f"labels of frame {k} differ from the session's"
+        color = recorder.received[topics.LABELS_COLOR][k]
+        assert stamp_ns(color) == stamp_ns(msg) and color.encoding == "rgb8"
+        assert np.array_equal(image_to_numpy(color), colorize_labels(labels))
+    assert any((image_to_numpy(m) == 1).any() for m in label_msgs), "no positive label at all"
+
+
+def spin_nodes(nodes: list[Any], predicate: Callable[[], bool], timeout: float) -> bool:
+    """Spin several nodes of one context in one executor until ``predicate()`` holds or ``timeout`` s pass."""
+    from rclpy.executors import SingleThreadedExecutor
+
+    executor = SingleThreadedExecutor(context=nodes[0].context)
+    for node in nodes:
+        executor.add_node(node)
+    deadline = time.monotonic() + timeout
+    try:
+        while not predicate() and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.02)
+    finally:
+        for node in nodes:
+            executor.remove_node(node)
+        executor.shutdown()
+    return predicate()
+
+
+@pytest.fixture
+def labeler_node(rclpy_context: Any, params_file: Path) -> Iterator[Callable[..., Any]]:
+    """Factory of in-process labeler nodes (parameters of the test YAML plus overrides), destroyed at teardown."""
+    from rclpy.parameter import Parameter
+
+    from selfcontra_ros.config import to_ros_parameters
+    from selfcontra_ros.ros.labeler_node import LabelerNode
+
+    created: list[Any] = []
+
+    def make(**overrides: Any) -> Any:
+        values = to_ros_parameters(*load_params(params_file))
+        values.update({"input_qos": "reliable", "stats_period": 0.1, "label_queue_size": 16})
+        values.update(overrides)
+        node = LabelerNode(
+            context=rclpy_context, parameter_overrides=[Parameter(k, value=v) for k, v in values.items()]
+        )
+        created.append(node)
+        return node
+
+    yield make
+    for node in created:
+        node.destroy_node()
+
+
+# --------------------------------------------------------------------------- tests
+
+
+def test_node_process_labels_a_sequence_like_the_session(
+    frames: Frames,
+    params_file: Path,
+    ros_node: Any,
+    ros_process: Callable[..., Any],
+    spin_until: Callable[[Any, Callable[[], bool], float], bool],
+) -> None:
+    """Subprocess with --params-file: depth for every frame, labels label_delay frames back, debug maps, SIGINT."""
+    from selfcontra_ros.ros.conversions import image_to_numpy
+
+    feeder = Feeder(ros_node)
+    recorder = Recorder(ros_node)
+    node = ros_process(
+        [
+            *NODE,
+            "--params-file",
+            str(params_file),
+            "-p",
+            "input_qos:=reliable",
+            "-p",
+            "label_queue_size:=16",
+            "-p",
+            "publish_debug:=true",
+        ],
+        name="labeler",
+    )
+    assert spin_until(ros_node, lambda: feeder.matched() and recorder.matched(), 20.0), node.stderr()
+    for k in range(FRAMES):
+        feeder.frame(frames, k, pose_first=k % 2 == 0)  # the pose before or after the images: both work
+    expected_labels = FRAMES - DELAY
+    done = spin_until(
+        ros_node,
+        lambda: recorder.count(topics.DEPTH) >= FRAMES and recorder.count("debug/uncertainty") >= expected_labels,
+        20.0,
+    )
+    assert done, f"{ {n: recorder.count(n) for n in recorder.received} }\n{node.stderr()}"
+    assert spin_until(
+        ros_node, lambda: recorder.stats is not None and recorder.stats["counts"]["views_labelled"] == FRAMES, 5.0
+    ), recorder.stats
+    check_outputs(recorder, frames, params_file, flushed=False)
+
+    _, results = reference(frames, params_file)
+    for k in range(expected_labels):
+        assert np.array_equal(image_to_numpy(recorder.received["debug/support"][k]), results[k].support)
+        assert np.array_equal(image_to_numpy(recorder.received["debug/vote_sum"][k]), results[k].vote_sum)
+        uncertainty = image_to_numpy(recorder.received["debug/uncertainty"][k])
+        assert np.array_equal(uncertainty, results[k].uncertainty, equal_nan=True)
+
+    stats = recorder.stats
+    assert stats is not None
+    # The YAML was applied (the node reports the parameters it runs with).
+    assert stats["params"]["labeler"]["window_size"] == 6
+    assert stats["params"]["matcher"]["num_disparities"] == 64
+    assert sum(stats["drops"].values()) == 0, stats["drops"]
+    assert node.stop() == 0, node.stderr()  # SIGINT: clean exit
+    assert "Traceback" not in node.stderr()
+    assert "stopped:" in node.stderr() + node.stdout()
+
+
+def test_sigterm_with_flush_on_shutdown_labels_the_waiting_views(
+    frames: Frames,
+    params_file: Path,
+    ros_node: Any,
+    ros_process: Callable[..., Any],
+    spin_until: Callable[[Any, Callable[[], bool], float], bool],
+) -> None:
+    feeder = Feeder(ros_node)
+    recorder = Recorder(ros_node)
+    node = ros_process(
+        [
+            *NODE,
+            "--params-file",
+            str(params_file),
+            "-p",
+            "input_qos:=reliable",
+            "-p",
+            "label_queue_size:=16",
+            "-p",
+            "flush_on_shutdown:=true",
+        ],
+        name="labeler",
+    )
+    assert spin_until(ros_node, lambda: feeder.matched() and recorder.matched(), 20.0), node.stderr()
+    for k in range(FRAMES):
+        feeder.frame(frames, k)
+    assert spin_until(ros_node, lambda: recorder.count(topics.LABELS_COLOR) >= FRAMES - DELAY, 20.0), node.stderr()
+    node.popen.send_signal(signal.SIGTERM)
+    assert spin_until(ros_node, lambda: recorder.count(topics.LABELS_COLOR) >= FRAMES, 10.0), node.stderr()
+    assert node.popen.wait(timeout=10.0) == 0, node.stderr()
+    check_outputs(recorder, frames, params_file, flushed=True)
+
+
+def test_odometry_pose_source(
+    frames: Frames, params_file: Path, ros_node: Any, labeler_node: Callable[..., Any]
+) -> None:
+    node = labeler_node(pose_source="odom")
+    feeder = Feeder(ros_node, odom=True)
+    recorder = Recorder(ros_node)
+    assert spin_nodes([node, ros_node], lambda: feeder.matched() and recorder.matched(), 10.0)
+    for k in range(FRAMES):
+        feeder.frame(frames, k)
+    done = spin_nodes([node, ros_node], lambda: recorder.count(topics.LABELS_COLOR) >= FRAMES - DELAY, 20.0)
+    assert done, (recorder.stats, node.stats())
+    check_outputs(recorder, frames, params_file, flushed=False)
+
+
+@pytest.mark.parametrize(
+    ("argument", "message"),
+    [
+        ("sync:=fuzzy", "expected one of exact, approximate"),
+        ("labeler.window_size:=1", "out of range"),
+        ("matcher.num_disparities:=100", "not a valid step"),
+        ("matcher.mode:=fast", "MatcherParams.mode must be one of"),
+    ],
+)
+def test_invalid_parameter_exits_with_code_2(ros_process: Callable[..., Any], argument: str, message: str) -> None:
+    node = ros_process([*NODE, "-p", argument], name="labeler")
+    assert node.popen.wait(timeout=15.0) == 2, node.stderr()
+    assert message in node.stderr()
+    assert "Traceback" not in node.stderr()
+
+
+def test_external_disparity_mode_labels_the_given_disparities(
+    frames: Frames, params_file: Path, ros_node: Any, labeler_node: Callable[..., Any]
+) -> None:
+    """matcher.algorithm external: each DisparityImage is a view; given SGBM's disparities, the labels are SGBM's."""
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from stereo_msgs.msg import DisparityImage
+
+    from selfcontra_ros.ros.conversions import disparity_image, nanoseconds_to_stamp
+
+    node = labeler_node(**{"matcher.algorithm": "external"})
+    feeder = Feeder(ros_node)
+    # The recorder's "disparity" subscription receives these input messages (the node publishes none in this mode).
+    recorder = Recorder(ros_node)
+    disparity_pub = ros_node.create_publisher(
+        DisparityImage, topics.DISPARITY, QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+    )
+    matched = lambda: disparity_pub.get_subscription_count() >= 2 and recorder.matched()  # noqa: E731
+    assert spin_nodes([node, ros_node], matched, 10.0)
+    matcher, _ = load_params(params_file)
+    session = LabelingSession(frames.camera, matcher)
+    for k in range(FRAMES):
+        stamp = frames.stamp_ns(k)
+        disparity, _ = session.match(frames.left[k], frames.right[k])
+        feeder.infos(frames.camera, stamp)
+        disparity_pub.publish(
+            disparity_image(disparity, frames.camera, stamp=nanoseconds_to_stamp(stamp), frame_id=FRAME_ID)
+        )
+        feeder.send_pose(frames.poses[k], stamp)
+    done = spin_nodes([node, ros_node], lambda: recorder.count(topics.LABELS_COLOR) >= FRAMES - DELAY, 20.0)
+    assert done, (recorder.stats, node.stats())
+    check_outputs(recorder, frames, params_file, flushed=False)
