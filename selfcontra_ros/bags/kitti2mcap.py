@@ -41,20 +41,16 @@ from __future__ import annotations
 import itertools
 import math
 from pathlib import Path
-from typing import Any
 
-import numpy as np
-from numpy.typing import NDArray
-from rosbags.typesys.store import Typestore
 from tqdm import tqdm
 
 from selfcontra_ros.bags import topics
+from selfcontra_ros.bags.messages import MessageBuilder
 from selfcontra_ros.bags.reader import BagError
 from selfcontra_ros.bags.writer import COMPRESSIONS, BagWriter
 from selfcontra_ros.datasets.kitti import StereoFrame, open_sequence
 from selfcontra_ros.errors import DatasetError
-from selfcontra_ros.geometry import StereoCamera, quaternion_from_rotation
-from selfcontra_ros.ros.conversions import camera_info_fields, image_fields
+from selfcontra_ros.geometry import StereoCamera
 
 __all__ = [
     "DEFAULT_STAMP_OFFSET_NS",
@@ -79,76 +75,22 @@ def seconds_to_nanoseconds(seconds: float) -> int:
     return whole * _NS_PER_S + round((seconds - whole) * _NS_PER_S)
 
 
-class _MessageFactory:
-    """Builds the bag's rosbags messages of one sequence (types looked up once)."""
-
-    def __init__(self, typestore: Typestore, camera: StereoCamera) -> None:
-        types = typestore.types
-        self._time = types["builtin_interfaces/msg/Time"]
-        self._header = types["std_msgs/msg/Header"]
-        self._image = types[topics.IMAGE_TYPE]
-        self._info = types[topics.CAMERA_INFO_TYPE]
-        self._roi = types["sensor_msgs/msg/RegionOfInterest"]
-        self._pose_stamped = types[topics.POSE_TYPE]
-        self._pose = types["geometry_msgs/msg/Pose"]
-        self._point = types["geometry_msgs/msg/Point"]
-        self._quaternion = types["geometry_msgs/msg/Quaternion"]
-        self._disparity = types[topics.DISPARITY_TYPE]
-        self.camera = camera
-
-    def header(self, stamp_ns: int, frame_id: str) -> Any:
-        sec, nanosec = divmod(stamp_ns, _NS_PER_S)
-        return self._header(stamp=self._time(sec=sec, nanosec=nanosec), frame_id=frame_id)
-
-    def image(self, pixels: NDArray[Any], encoding: str, stamp_ns: int, frame_id: str) -> Any:
-        fields = image_fields(pixels, encoding)
-        fields["data"] = np.frombuffer(fields["data"], dtype=np.uint8)
-        return self._image(header=self.header(stamp_ns, frame_id), **fields)
-
-    def camera_info(self, stamp_ns: int, frame_id: str, *, right: bool) -> Any:
-        fields = camera_info_fields(self.camera, right=right)
-        roi = self._roi(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
-        return self._info(header=self.header(stamp_ns, frame_id), roi=roi, **fields)
-
-    def pose(self, pose: NDArray[np.float64], stamp_ns: int) -> Any:
-        x, y, z = (float(v) for v in pose[:3, 3])
-        qx, qy, qz, qw = (float(v) for v in quaternion_from_rotation(pose[:3, :3]))
-        return self._pose_stamped(
-            header=self.header(stamp_ns, topics.WORLD_FRAME),
-            pose=self._pose(position=self._point(x=x, y=y, z=z), orientation=self._quaternion(x=qx, y=qy, z=qz, w=qw)),
-        )
-
-    def disparity(self, disparity: NDArray[np.float32], stamp_ns: int, frame_id: str) -> Any:
-        cam = self.camera
-        d = np.asarray(disparity, dtype=np.float32).copy()
-        finite = np.isfinite(d)
-        min_disparity = 0.0
-        d[~finite] = np.float32(min_disparity - 1.0)  # stereo_image_proc's mark of "no disparity"
-        max_disparity = float(d[finite].max()) if finite.any() else min_disparity
-        return self._disparity(
-            header=self.header(stamp_ns, frame_id),
-            image=self.image(d, "32FC1", stamp_ns, frame_id),
-            f=float(cam.fx),
-            t=float(cam.baseline),
-            valid_window=self._roi(x_offset=0, y_offset=0, height=cam.height, width=cam.width, do_rectify=False),
-            min_disparity=min_disparity,
-            max_disparity=max_disparity,
-            delta_d=GT_DELTA_D,
-        )
-
-
-def _write_frame(bag: BagWriter, make: _MessageFactory, frame: StereoFrame, stamp_ns: int) -> None:
+def _write_frame(bag: BagWriter, make: MessageBuilder, camera: StereoCamera, frame: StereoFrame, stamp_ns: int) -> None:
     """Append one frame's messages, all stamped ``stamp_ns``, in the order of the module table."""
     encoding = "rgb8" if frame.left.ndim == 3 else "mono8"
     left, right = topics.LEFT_FRAME, topics.RIGHT_FRAME
     bag.write(topics.bag_topic(topics.LEFT_IMAGE), stamp_ns, make.image(frame.left, encoding, stamp_ns, left))
     bag.write(topics.bag_topic(topics.RIGHT_IMAGE), stamp_ns, make.image(frame.right, encoding, stamp_ns, right))
-    bag.write(topics.bag_topic(topics.LEFT_INFO), stamp_ns, make.camera_info(stamp_ns, left, right=False))
-    bag.write(topics.bag_topic(topics.RIGHT_INFO), stamp_ns, make.camera_info(stamp_ns, right, right=True))
+    bag.write(topics.bag_topic(topics.LEFT_INFO), stamp_ns, make.camera_info(camera, stamp_ns, left, right=False))
+    bag.write(topics.bag_topic(topics.RIGHT_INFO), stamp_ns, make.camera_info(camera, stamp_ns, right, right=True))
     if frame.pose is not None:
-        bag.write(topics.bag_topic(topics.POSE), stamp_ns, make.pose(frame.pose, stamp_ns))
+        bag.write(topics.bag_topic(topics.POSE), stamp_ns, make.pose_stamped(frame.pose, stamp_ns))
     if frame.gt_disparity is not None:
-        bag.write(topics.bag_topic(topics.GT_DISPARITY), stamp_ns, make.disparity(frame.gt_disparity, stamp_ns, left))
+        bag.write(
+            topics.bag_topic(topics.GT_DISPARITY),
+            stamp_ns,
+            make.disparity(frame.gt_disparity, camera, stamp_ns, left, delta_d=GT_DELTA_D),
+        )
 
 
 def kitti_to_mcap(
@@ -206,8 +148,8 @@ def kitti_to_mcap(
         "selfcontra.stamp_offset_ns": str(int(stamp_offset_ns)),
     }
     with BagWriter(out, compress=compress, atomic=True, custom_data=custom_data) as bag:
-        make = _MessageFactory(bag.typestore, seq.camera)
+        make = MessageBuilder(bag.typestore)
         bar = tqdm(indices, desc=f"kitti2mcap {seq.sequence}", unit="frame", disable=not progress)
         for i, stamp_ns in zip(bar, stamps_ns, strict=True):
-            _write_frame(bag, make, seq[i], stamp_ns)
+            _write_frame(bag, make, seq.camera, seq[i], stamp_ns)
     return out

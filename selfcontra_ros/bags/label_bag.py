@@ -83,6 +83,7 @@ from rosbags.typesys.store import Typestore
 from tqdm import tqdm
 
 from selfcontra_ros.bags import topics
+from selfcontra_ros.bags.messages import MessageBuilder
 from selfcontra_ros.bags.reader import Bag, BagError, open_bag
 from selfcontra_ros.bags.sync import PoseBuffer, StampSynchronizer
 from selfcontra_ros.bags.writer import BagWriter
@@ -96,7 +97,6 @@ from selfcontra_ros.matching.base import MatcherError, MatcherParams
 from selfcontra_ros.pipeline import METRICS_FILE, PendingView, evaluate_view, json_safe
 from selfcontra_ros.ros.conversions import (
     disparity_from_message,
-    image_fields,
     image_to_numpy,
     stamp_to_nanoseconds,
     stereo_camera_from_camera_infos,
@@ -157,45 +157,28 @@ class _Frame:
     external: Any | None
 
 
-class _Messages:
-    """Builds the output messages (rosbags types of the writer's typestore)."""
+class _Messages(MessageBuilder):
+    """The output messages; disparities report the built-in matcher's search range, as stereo_image_proc does."""
 
     def __init__(self, typestore: Typestore, camera_delta_d: float, matcher: MatcherParams) -> None:
-        types = typestore.types
-        self._time = types["builtin_interfaces/msg/Time"]
-        self._header = types["std_msgs/msg/Header"]
-        self._image = types[topics.IMAGE_TYPE]
-        self._roi = types["sensor_msgs/msg/RegionOfInterest"]
-        self._disparity = types[topics.DISPARITY_TYPE]
+        super().__init__(typestore)
         self._delta_d = camera_delta_d
         self._matcher = matcher
 
-    def header(self, stamp_ns: int, frame_id: str) -> Any:
-        sec, nanosec = divmod(stamp_ns, _NS_PER_S)
-        return self._header(stamp=self._time(sec=sec, nanosec=nanosec), frame_id=frame_id)
-
-    def image(self, pixels: NDArray[Any], encoding: str, stamp_ns: int, frame_id: str) -> Any:
-        fields = image_fields(pixels, encoding)
-        fields["data"] = np.frombuffer(fields["data"], dtype=np.uint8)
-        return self._image(header=self.header(stamp_ns, frame_id), **fields)
-
-    def disparity(self, disparity: NDArray[np.float32], camera: StereoCamera, stamp_ns: int, frame_id: str) -> Any:
+    def matcher_disparity(
+        self, disparity: NDArray[np.float32], camera: StereoCamera, stamp_ns: int, frame_id: str
+    ) -> Any:
         """A DisparityImage with the conventions of :func:`selfcontra_ros.ros.conversions.disparity_image`."""
-        d = np.asarray(disparity, dtype=np.float32).copy()
-        finite = np.isfinite(d)
         if self._matcher.algorithm == "external":
-            min_disparity = 0.0
-            max_disparity = float(d[finite].max()) if finite.any() else min_disparity
-        else:  # the search range of the built-in matcher, as stereo_image_proc reports it
+            min_disparity, max_disparity = 0.0, None
+        else:
             min_disparity = float(self._matcher.min_disparity)
             max_disparity = min_disparity + self._matcher.num_disparities - 1
-        d[~finite] = np.float32(min_disparity - 1.0)  # stereo_msgs' mark of "no disparity"
-        return self._disparity(
-            header=self.header(stamp_ns, frame_id),
-            image=self.image(d, "32FC1", stamp_ns, frame_id),
-            f=float(camera.fx),
-            t=float(camera.baseline),
-            valid_window=self._roi(x_offset=0, y_offset=0, height=camera.height, width=camera.width, do_rectify=False),
+        return self.disparity(
+            disparity,
+            camera,
+            stamp_ns,
+            frame_id,
             min_disparity=min_disparity,
             max_disparity=max_disparity,
             delta_d=self._delta_d,
@@ -450,7 +433,9 @@ class _BagLabeler:
     ) -> None:
         self.writer.write(self.topic[topics.DEPTH], stamp, self.make.image(depth, "32FC1", stamp, fid))
         if self.disparity_topic != self.topic[topics.DISPARITY]:  # else the input already holds it
-            self.writer.write(self.topic[topics.DISPARITY], stamp, self.make.disparity(disparity, camera, stamp, fid))
+            self.writer.write(
+                self.topic[topics.DISPARITY], stamp, self.make.matcher_disparity(disparity, camera, stamp, fid)
+            )
 
     def _write_labels(self, results: list[LabelResult]) -> None:
         for result in results:

@@ -42,6 +42,7 @@ __all__ = [
     "camera_infos_from_stereo_camera",
     "disparity_from_message",
     "disparity_image",
+    "disparity_image_fields",
     "image_fields",
     "image_to_numpy",
     "nanoseconds_to_stamp",
@@ -275,6 +276,37 @@ def disparity_image(
     """
     from stereo_msgs.msg import DisparityImage
 
+    fields = disparity_image_fields(
+        disparity, camera, min_disparity=min_disparity, max_disparity=max_disparity, delta_d=delta_d
+    )
+    msg = DisparityImage()
+    _fill_header(msg.header, stamp, frame_id)
+    msg.image = numpy_to_image(fields.pop("disparity"), "32FC1", stamp=stamp, frame_id=frame_id)
+    for name, value in fields.pop("valid_window").items():
+        setattr(msg.valid_window, name, value)
+    for name, value in fields.items():
+        setattr(msg, name, value)
+    return msg
+
+
+def disparity_image_fields(
+    disparity: ArrayLike,
+    camera: StereoCamera,
+    *,
+    min_disparity: float = 0.0,
+    max_disparity: float | None = None,
+    delta_d: float = 1.0 / 16.0,
+) -> dict[str, Any]:
+    """The fields of a ``stereo_msgs/DisparityImage`` (see :func:`disparity_image`), for any message library.
+
+    Returns a dict with ``disparity`` (the float32 map to put in ``image`` as
+    32FC1, invalid pixels already written as ``min_disparity - 1``), ``f``,
+    ``t``, ``valid_window`` (a dict of the RegionOfInterest fields),
+    ``min_disparity``, ``max_disparity`` and ``delta_d``.
+
+    Raises:
+        ConversionError: the disparity is not 2-D, not real, or its size differs from the camera's.
+    """
     d = np.asarray(disparity)
     if d.dtype.kind not in "fiu":
         raise ConversionError(f"disparity dtype is {d.dtype}; expected a real number type")
@@ -288,20 +320,21 @@ def disparity_image(
     d32[~finite] = np.float32(min_disparity - 1.0)
     if max_disparity is None:
         max_disparity = float(d32[finite].max()) if finite.any() else float(min_disparity)
-
-    msg = DisparityImage()
-    _fill_header(msg.header, stamp, frame_id)
-    msg.image = numpy_to_image(d32, "32FC1", stamp=stamp, frame_id=frame_id)
-    msg.f = float(camera.fx)
-    msg.t = float(camera.baseline)
-    msg.valid_window.x_offset = 0
-    msg.valid_window.y_offset = 0
-    msg.valid_window.width = camera.width
-    msg.valid_window.height = camera.height
-    msg.min_disparity = float(min_disparity)
-    msg.max_disparity = float(max_disparity)
-    msg.delta_d = float(delta_d)
-    return msg
+    return {
+        "disparity": d32,
+        "f": float(camera.fx),
+        "t": float(camera.baseline),
+        "valid_window": {
+            "x_offset": 0,
+            "y_offset": 0,
+            "height": camera.height,
+            "width": camera.width,
+            "do_rectify": False,
+        },
+        "min_disparity": float(min_disparity),
+        "max_disparity": float(max_disparity),
+        "delta_d": float(delta_d),
+    }
 
 
 def disparity_from_message(msg: Any) -> tuple[NDArray[np.float32], float, float]:

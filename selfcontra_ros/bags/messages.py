@@ -1,0 +1,86 @@
+"""Build rosbags messages (for writing bags) from numpy arrays and the camera.
+
+The field conventions live in :mod:`selfcontra_ros.ros.conversions`
+(``image_fields``, ``camera_info_fields``, ``disparity_image_fields``), shared
+with the rclpy messages the nodes publish; this module only wraps them in the
+message classes of a rosbags typestore, so bags and topics carry the same
+bytes.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from rosbags.typesys.store import Typestore
+
+from selfcontra_ros.bags import topics
+from selfcontra_ros.geometry import StereoCamera, quaternion_from_rotation
+from selfcontra_ros.ros.conversions import camera_info_fields, disparity_image_fields, image_fields
+
+__all__ = ["MessageBuilder"]
+
+_NS_PER_S = 1_000_000_000
+
+
+class MessageBuilder:
+    """Creates rosbags messages of one typestore (message classes looked up once)."""
+
+    def __init__(self, typestore: Typestore) -> None:
+        types = typestore.types
+        self._time = types["builtin_interfaces/msg/Time"]
+        self._header = types["std_msgs/msg/Header"]
+        self._image = types[topics.IMAGE_TYPE]
+        self._info = types[topics.CAMERA_INFO_TYPE]
+        self._roi = types["sensor_msgs/msg/RegionOfInterest"]
+        self._pose_stamped = types[topics.POSE_TYPE]
+        self._pose = types["geometry_msgs/msg/Pose"]
+        self._point = types["geometry_msgs/msg/Point"]
+        self._quaternion = types["geometry_msgs/msg/Quaternion"]
+        self._disparity = types[topics.DISPARITY_TYPE]
+
+    def header(self, stamp_ns: int, frame_id: str) -> Any:
+        """``std_msgs/Header`` with an integer-nanosecond stamp."""
+        sec, nanosec = divmod(stamp_ns, _NS_PER_S)
+        return self._header(stamp=self._time(sec=sec, nanosec=nanosec), frame_id=frame_id)
+
+    def image(self, pixels: NDArray[Any], encoding: str, stamp_ns: int, frame_id: str) -> Any:
+        """``sensor_msgs/Image`` of an array in one of the encodings of ``image_fields``."""
+        fields = image_fields(pixels, encoding)
+        fields["data"] = np.frombuffer(fields["data"], dtype=np.uint8)
+        return self._image(header=self.header(stamp_ns, frame_id), **fields)
+
+    def camera_info(self, camera: StereoCamera, stamp_ns: int, frame_id: str, *, right: bool) -> Any:
+        """``sensor_msgs/CameraInfo`` of the left or right camera of a rectified pair."""
+        fields = camera_info_fields(camera, right=right)
+        roi = self._roi(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+        return self._info(header=self.header(stamp_ns, frame_id), roi=roi, **fields)
+
+    def pose_stamped(self, pose: NDArray[np.float64], stamp_ns: int, frame_id: str = topics.WORLD_FRAME) -> Any:
+        """``geometry_msgs/PoseStamped`` of a 4x4 pose ``T_frame_left``."""
+        x, y, z = (float(v) for v in pose[:3, 3])
+        qx, qy, qz, qw = (float(v) for v in quaternion_from_rotation(pose[:3, :3]))
+        return self._pose_stamped(
+            header=self.header(stamp_ns, frame_id),
+            pose=self._pose(position=self._point(x=x, y=y, z=z), orientation=self._quaternion(x=qx, y=qy, z=qz, w=qw)),
+        )
+
+    def disparity(
+        self,
+        disparity: NDArray[np.floating],
+        camera: StereoCamera,
+        stamp_ns: int,
+        frame_id: str,
+        *,
+        min_disparity: float = 0.0,
+        max_disparity: float | None = None,
+        delta_d: float = 1.0 / 16.0,
+    ) -> Any:
+        """``stereo_msgs/DisparityImage`` with the conventions of ``conversions.disparity_image``."""
+        fields = disparity_image_fields(
+            disparity, camera, min_disparity=min_disparity, max_disparity=max_disparity, delta_d=delta_d
+        )
+        image = self.image(fields.pop("disparity"), "32FC1", stamp_ns, frame_id)
+        window = self._roi(**fields.pop("valid_window"))
+        return self._disparity(header=self.header(stamp_ns, frame_id), image=image, valid_window=window, **fields)
