@@ -77,7 +77,9 @@ def _cmd_label(args: argparse.Namespace) -> int:
     else:
         from selfcontra_ros.pipeline import label_sequence
 
-        metrics = label_sequence(source, out, params_file=args.params, frames=args.frames)
+        metrics = label_sequence(
+            source, out, params_file=args.params, frames=args.frames, estimate_poses=args.estimate_poses
+        )
         written = f"wrote labels and metrics.json to {out}"
     mean = metrics.get("mean", {})
     if mean:
@@ -101,10 +103,18 @@ def _cmd_kitti2mcap(args: argparse.Namespace) -> int:
         color=args.color,
         sequence=args.sequence,
         stamp_offset_ns=offset_ns,
+        estimate_poses=args.estimate_poses,
     )
     with open_bag(out) as bag:
         topics = ", ".join(f"{t.name} ({t.message_count})" for t in bag.topics.values())
     print(f"wrote {out}: {topics}")
+    return 0
+
+
+def _cmd_odometry(args: argparse.Namespace) -> int:
+    from selfcontra_ros.odometry.run import odometry_command
+
+    odometry_command(Path(args.input), Path(args.out), sequence=args.sequence, namespace=args.namespace, step=args.step)
     return 0
 
 
@@ -134,6 +144,11 @@ def build_parser() -> argparse.ArgumentParser:
     label.add_argument("--out", required=True, help="output folder (sequence) or output bag (bag input)")
     label.add_argument("--params", default=None, help="parameter YAML (default: the package's config/labeler.yaml)")
     label.add_argument("--frames", type=_frame_range, default=None, help="frame range A:B (sequences only)")
+    label.add_argument(
+        "--estimate-poses",
+        action="store_true",
+        help="sequence without poses: estimate them with stereo visual odometry (unreliable frames are not labelled)",
+    )
     bag_options = label.add_argument_group("bag input")
     bag_options.add_argument("--sync", choices=("exact", "approximate"), default="exact", help="image pairing")
     bag_options.add_argument("--slop", type=float, default=0.0, help="approximate sync tolerance, seconds")
@@ -155,7 +170,23 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="seconds added to the sequence stamps (default 2011-09-26T00:00:00Z; 0 keeps times.txt as is)",
     )
+    k2m.add_argument(
+        "--estimate-poses", action="store_true", help="no poses in the sequence: estimate them with visual odometry"
+    )
     k2m.set_defaults(handler=_cmd_kitti2mcap)
+
+    odo = sub.add_parser(
+        "odometry",
+        help="estimate poses with stereo visual odometry (KITTI pose file, quality report, KITTI metrics)",
+        description="Writes OUT (KITTI pose format) and OUT's quality report beside it; with ground-truth poses, "
+        "prints the KITTI odometry metrics (relative translation %% and rotation deg/m over 5-50 m sub-sequences).",
+    )
+    odo.add_argument("input", help="sequence folder (dataset root or sequences/XX) or a rosbag2 bag")
+    odo.add_argument("--out", required=True, help="pose file to write (KITTI format)")
+    odo.add_argument("--sequence", default=None, help="sequence of a root holding several (e.g. 06)")
+    odo.add_argument("--namespace", default=None, help="stereo topic namespace of a bag (default: found in the bag)")
+    odo.add_argument("--step", type=int, default=1, help="metrics: a first frame every STEP frames (KITTI devkit: 10)")
+    odo.set_defaults(handler=_cmd_odometry)
     return parser
 
 

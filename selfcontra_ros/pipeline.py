@@ -78,9 +78,9 @@ class PendingView:
     gt_disparity: NDArray[np.float32] | None
 
 
-def _frame_indices(sequence: OdometrySequence, frames: slice | None) -> range:
+def _frame_indices(sequence: OdometrySequence, frames: slice | None) -> list[int]:
     indices = range(len(sequence))
-    return indices[frames] if frames is not None else indices
+    return list(indices[frames] if frames is not None else indices)
 
 
 def json_safe(value: Any) -> Any:
@@ -116,7 +116,7 @@ def evaluate_view(result: LabelResult, pending: PendingView) -> dict[str, float]
 
 
 def _run(
-    sequence: OdometrySequence, indices: range, session: LabelingSession, out_dir: Path
+    sequence: OdometrySequence, indices: list[int], session: LabelingSession, out_dir: Path
 ) -> Iterator[tuple[int, float, dict[str, float]]]:
     """Match and label the frames; yield ``(index, stamp, figures)`` per labelled frame, in labelling order."""
     pending: dict[int, PendingView] = {}
@@ -146,6 +146,7 @@ def label_sequence(
     *,
     params_file: str | Path | None = None,
     frames: slice | None = None,
+    estimate_poses: bool = False,
 ) -> dict[str, Any]:
     """Label a KITTI-layout stereo sequence and evaluate the labels.
 
@@ -155,6 +156,9 @@ def label_sequence(
         out_dir: output folder; created if needed (see the module docstring).
         params_file: parameter YAML; ``None`` uses the package's ``config/labeler.yaml``.
         frames: the frame indices to run (a Python slice); ``None`` runs all.
+        estimate_poses: when the sequence has no poses, estimate them with the
+            package's stereo visual odometry; frames whose pose is unreliable
+            are not labelled (listed as ``unreliable_pose_frames``).
 
     Returns:
         The content of ``metrics.json`` (with NaN, not ``null``, for undefined figures).
@@ -173,12 +177,20 @@ def label_sequence(
             "Use 'sgbm' or 'bm' for offline labeling."
         )
     sequence = open_sequence(seq_dir)
+    reliable: NDArray[np.bool_] | None = None
     if sequence.poses is None:
-        raise SelfContraError(
-            f"sequence {seq_dir} has no poses (expected poses/<sequence>.txt beside sequences/); "
-            "the labeler needs the camera pose of every frame (visual odometry is not available yet)"
-        )
+        if not estimate_poses:
+            raise SelfContraError(
+                f"sequence {seq_dir} has no poses (expected poses/<sequence>.txt beside sequences/); "
+                "the labeler needs the camera pose of every frame: pass --estimate-poses to estimate them "
+                "with stereo visual odometry"
+            )
+        from selfcontra_ros.odometry.run import poses_for_sequence
+
+        sequence.poses, reliable = poses_for_sequence(sequence, progress=True)
     indices = _frame_indices(sequence, frames)
+    unreliable = [] if reliable is None else [i for i in indices if not reliable[i]]
+    indices = [i for i in indices if i not in set(unreliable)]  # an unreliable pose would make false labels
     if len(indices) == 0:
         raise SelfContraError(f"frame range {frames} selects no frame of the {len(sequence)} in {seq_dir}")
     for sub in (LABELS_DIR, LABELS_COLOR_DIR):
@@ -196,6 +208,8 @@ def label_sequence(
         "mean": mean_metrics(figures for _, _, figures in per_frame),
         "params": params_to_dict(matcher_params, labeler_params),
         "skipped_frames": [index for index in indices if index not in labelled],
+        "pose_source": "ground truth file" if reliable is None else "stereo visual odometry",
+        "unreliable_pose_frames": unreliable,
         "has_ground_truth": has_gt,
         "runtime_s": time.perf_counter() - started,
     }

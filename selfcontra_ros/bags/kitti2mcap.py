@@ -103,6 +103,7 @@ def kitti_to_mcap(
     sequence: str | None = None,
     stamp_offset_ns: int = DEFAULT_STAMP_OFFSET_NS,
     progress: bool = True,
+    estimate_poses: bool = False,
 ) -> Path:
     """Write a KITTI odometry sequence as a rosbag2 bag folder with MCAP storage (see the module docstring).
 
@@ -118,6 +119,10 @@ def kitti_to_mcap(
         sequence: which sequence of a root holding several.
         stamp_offset_ns: nanoseconds added to every sequence stamp.
         progress: show a tqdm progress bar.
+        estimate_poses: when the sequence has no poses, estimate them with the
+            package's stereo visual odometry and write ``/stereo/pose`` for the
+            frames whose pose is reliable (unreliable frames get no pose message,
+            so the labelers interpolate or drop them).
 
     Returns:
         The bag folder ``out``.
@@ -140,16 +145,26 @@ def kitti_to_mcap(
     if any(b <= a for a, b in itertools.pairwise(stamps_ns)):
         raise DatasetError(f"stamps of {seq.folder} (times.txt) are not strictly increasing over the chosen frames")
 
+    reliable = None
+    if seq.poses is None and estimate_poses:
+        from selfcontra_ros.odometry.run import poses_for_sequence
+
+        seq.poses, reliable = poses_for_sequence(seq, progress=progress)
+
     out.parent.mkdir(parents=True, exist_ok=True)
     custom_data = {
         "selfcontra.source": str(seq.folder.resolve()),
         "selfcontra.sequence": seq.sequence,
         "selfcontra.frames": f"{indices[0]}:{indices[-1] + 1}:{indices.step}",
         "selfcontra.stamp_offset_ns": str(int(stamp_offset_ns)),
+        "selfcontra.pose_source": "none" if seq.poses is None else "file" if reliable is None else "odometry",
     }
     with BagWriter(out, compress=compress, atomic=True, custom_data=custom_data) as bag:
         make = MessageBuilder(bag.typestore)
         bar = tqdm(indices, desc=f"kitti2mcap {seq.sequence}", unit="frame", disable=not progress)
         for i, stamp_ns in zip(bar, stamps_ns, strict=True):
-            _write_frame(bag, make, seq.camera, seq[i], stamp_ns)
+            frame = seq[i]
+            if reliable is not None and not reliable[i]:
+                frame.pose = None  # an unreliable odometry pose is left out rather than written
+            _write_frame(bag, make, seq.camera, frame, stamp_ns)
     return out

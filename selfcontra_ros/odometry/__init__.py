@@ -1,0 +1,1 @@
+"""Stereo visual odometry: poses for sequences and bags that have none."""

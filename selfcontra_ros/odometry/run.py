@@ -1,0 +1,404 @@
+"""Offline stereo visual odometry over a KITTI-layout sequence or a bag: the ``selfcontra odometry`` command.
+
+:func:`odometry_command` estimates the pose of every stereo pair with
+:class:`~selfcontra_ros.odometry.stereo_vo.StereoOdometry` and writes
+
+- ``OUT`` (e.g. ``poses.txt``): KITTI pose format, one row-major 3x4
+  ``T_world_left`` per frame, world = left camera of the first frame;
+- ``OUT`` with suffix ``.quality.csv`` and ``.quality.json``: the per-frame
+  quality (status, reliable, feature/match/inlier counts, RMS reprojection
+  error, motion), and in the JSON also the run's summary and, when the input
+  has ground-truth poses, the KITTI odometry metrics of
+  :mod:`selfcontra_ros.odometry.metrics`.
+
+Unreliable frames keep a constant-velocity guess in ``poses.txt`` (KITTI
+files need one line per frame) and ``reliable: false`` in the quality files:
+callers must not label them (:func:`poses_for_sequence` returns the mask).
+A sequence in which no frame after the first gives a pose with motion raises
+:class:`~selfcontra_ros.odometry.stereo_vo.OdometryError` with the reason
+(too little texture, too few matches, no motion).
+
+The functions are pure in the sense of DESIGN section 9: they read their
+arguments' files and write only the output paths given.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import time
+from collections import Counter
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from tqdm import tqdm
+
+from selfcontra_ros.bags import topics
+from selfcontra_ros.bags.reader import BagError, open_bag
+from selfcontra_ros.bags.sync import StampSynchronizer
+from selfcontra_ros.datasets.kitti import OdometrySequence, StereoScene, open_sequence, write_poses
+from selfcontra_ros.geometry import StereoCamera
+from selfcontra_ros.odometry.metrics import SHORT_LENGTHS, OdometryMetrics, evaluate_odometry
+from selfcontra_ros.odometry.stereo_vo import FrameQuality, OdometryError, StereoOdometry, VOParams
+
+__all__ = [
+    "OnlineOdometry",
+    "bag_stereo_frames",
+    "check_usable",
+    "estimate_bag_poses",
+    "estimate_poses",
+    "estimate_sequence_poses",
+    "odometry_command",
+    "poses_for_sequence",
+    "quality_paths",
+    "write_quality",
+]
+
+_NS_PER_S = 1_000_000_000
+_LEFT, _RIGHT = "left", "right"
+
+
+def estimate_poses(
+    camera: StereoCamera,
+    frames: Iterable[tuple[float, NDArray[np.uint8], NDArray[np.uint8]]],
+    *,
+    params: VOParams | None = None,
+) -> tuple[NDArray[np.float64], list[FrameQuality]]:
+    """Run the odometry over ``(stamp, left, right)`` triples.
+
+    Returns:
+        (N, 4, 4) poses ``T_world_left`` (metres, after the windowed
+        refinement) and the per-frame quality.
+
+    Raises:
+        OdometryError: no frame at all, or no usable frame (see :func:`check_usable`).
+    """
+    vo = StereoOdometry(camera, params)
+    for stamp, left, right in frames:
+        vo.add(left, right, stamp)
+    if not vo.poses:
+        raise OdometryError("the input holds no stereo frame")
+    poses = np.stack(vo.poses)
+    check_usable(vo.qualities)
+    return poses, vo.qualities
+
+
+def check_usable(qualities: list[FrameQuality], *, source: str = "the sequence") -> None:
+    """Raise unless at least one frame after the first has a reliable pose with motion.
+
+    Raises:
+        OdometryError: naming the reason: a single frame, no reliable frame
+            (with the most frequent failure and its message), or no motion.
+    """
+    if len(qualities) < 2:
+        raise OdometryError(f"{source} has {len(qualities)} frame(s); visual odometry needs at least two")
+    statuses = Counter(q.status for q in qualities[1:])
+    if statuses["ok"] > 0:
+        return
+    if statuses["static"] > 0 and statuses["static"] >= sum(statuses.values()) - statuses["static"]:
+        raise OdometryError(
+            f"{source}: no motion: the camera did not move measurably in any of its {len(qualities)} frames "
+            f"(median feature motion below the static threshold); poses cannot support labeling"
+        )
+    failures = [q for q in qualities if not q.reliable]
+    if failures:
+        worst, _ = Counter(q.status for q in failures).most_common(1)[0]
+        example = next(q for q in failures if q.status == worst)
+        raise OdometryError(
+            f"{source}: no usable frame: {len(failures)} of {len(qualities)} frames unreliable "
+            f"(mostly '{worst}', e.g. frame {example.index}: {example.message}); "
+            "the images may have too little texture"
+        )
+    raise OdometryError(f"{source}: no frame with motion")
+
+
+def _sequence_frames(
+    sequence: OdometrySequence | StereoScene, indices: range, progress: bool
+) -> Iterator[tuple[float, NDArray[np.uint8], NDArray[np.uint8]]]:
+    for i in tqdm(indices, desc="odometry", unit="frame", disable=not progress):
+        frame = sequence[i]
+        yield frame.stamp, frame.left, frame.right
+
+
+def poses_for_sequence(
+    sequence: OdometrySequence | StereoScene, *, params: VOParams | None = None, progress: bool = False
+) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Estimated poses of every frame of an opened sequence and the mask of reliable ones.
+
+    The hook for callers that need poses where a sequence has none
+    (``selfcontra label --estimate-poses``, ``kitti2mcap --estimate-poses``):
+    frames whose mask entry is False must not be labelled.
+
+    Returns:
+        (N, 4, 4) ``T_world_left`` (metres, world = left camera of frame 0) and (N,) booleans.
+
+    Raises:
+        OdometryError: no usable frame (too little texture, no motion).
+    """
+    poses, qualities = estimate_poses(
+        sequence.camera, _sequence_frames(sequence, range(len(sequence)), progress), params=params
+    )
+    return poses, np.array([q.reliable for q in qualities], dtype=bool)
+
+
+def estimate_sequence_poses(
+    seq_dir: Path | str,
+    *,
+    sequence: str | None = None,
+    frames: slice | None = None,
+    params: VOParams | None = None,
+    progress: bool = False,
+) -> tuple[NDArray[np.float64], list[FrameQuality]]:
+    """Estimate the poses of a KITTI-layout sequence folder (real or synthetic).
+
+    Args:
+        seq_dir: dataset root holding ``sequences/XX`` or a ``sequences/XX`` folder.
+        sequence: which sequence of a root holding several.
+        frames: the frames to use (a slice); all when None. Poses are
+            relative to the first frame used.
+        params: odometry parameters; defaults when None.
+        progress: show a progress bar.
+
+    Returns:
+        (N, 4, 4) poses ``T_world_left`` and the per-frame quality.
+
+    Raises:
+        DatasetError: the folder is not a KITTI odometry sequence.
+        OdometryError: no usable frame.
+    """
+    seq = open_sequence(seq_dir, sequence=sequence)
+    indices = range(len(seq))[frames] if frames is not None else range(len(seq))
+    return estimate_poses(seq.camera, _sequence_frames(seq, indices, progress), params=params)
+
+
+# --------------------------------------------------------------------------- bags
+
+
+def _read_camera(bag_path: Path | str, namespace: str) -> StereoCamera:
+    from selfcontra_ros.ros.conversions import stereo_camera_from_camera_infos
+
+    infos: dict[str, Any] = {}
+    wanted = {
+        topics.bag_topic(topics.LEFT_INFO, namespace): _LEFT,
+        topics.bag_topic(topics.RIGHT_INFO, namespace): _RIGHT,
+    }
+    with open_bag(bag_path) as bag:
+        missing = [t for t in wanted if t not in bag.topics]
+        if missing:
+            raise BagError(f"bag {bag_path} has no {', '.join(missing)}: the odometry needs both camera infos")
+        for message in bag.messages(wanted):
+            infos.setdefault(wanted[message.topic], message.msg)
+            if len(infos) == 2:
+                break
+    return stereo_camera_from_camera_infos(infos[_LEFT], infos[_RIGHT])
+
+
+def bag_stereo_frames(
+    bag_path: Path | str, *, namespace: str | None = None, slop: float = 0.0
+) -> tuple[StereoCamera, Iterator[tuple[int, NDArray[np.uint8], NDArray[np.uint8]]]]:
+    """The stereo camera of a bag and an iterator over its synchronised ``(stamp_ns, left, right)`` pairs.
+
+    Images are paired by header stamp (exactly, or within ``slop`` seconds);
+    ``bgr8`` images are turned to RGB, others passed as decoded.
+
+    Raises:
+        BagError: missing or corrupt bag, missing topics.
+        CalibrationError: camera infos that do not describe a rectified pair.
+    """
+    from selfcontra_ros.bags.label_bag import resolve_namespace
+    from selfcontra_ros.ros.conversions import image_to_numpy
+
+    with open_bag(bag_path) as bag:
+        ns = resolve_namespace(list(bag.topics), namespace)
+    camera = _read_camera(bag_path, ns)
+    sides = {topics.bag_topic(topics.LEFT_IMAGE, ns): _LEFT, topics.bag_topic(topics.RIGHT_IMAGE, ns): _RIGHT}
+
+    def pairs() -> Iterator[tuple[int, NDArray[np.uint8], NDArray[np.uint8]]]:
+        sync = StampSynchronizer((_LEFT, _RIGHT), mode="approximate" if slop > 0 else "exact", slop=slop)
+        with open_bag(bag_path) as bag:
+            for message in bag.messages(sides):
+                header = message.msg.header.stamp
+                stamp_ns = int(header.sec) * _NS_PER_S + int(header.nanosec)
+                for match in sync.push(sides[message.topic], stamp_ns, message.msg).matches:
+                    left, right = (_image(m) for m in match.items)
+                    yield match.stamp_ns, left, right
+
+    def _image(msg: Any) -> NDArray[np.uint8]:
+        pixels = image_to_numpy(msg)
+        if pixels.dtype != np.uint8:
+            raise BagError(f"bag {bag_path}: image encoding {msg.encoding} is not 8-bit; the odometry needs mono8/rgb8")
+        if msg.encoding in ("bgr8", "bgra8"):
+            pixels = pixels[:, :, 2::-1]
+        elif pixels.ndim == 3:
+            pixels = pixels[:, :, :3]
+        return np.ascontiguousarray(pixels)
+
+    return camera, pairs()
+
+
+def estimate_bag_poses(
+    bag_path: Path | str, *, namespace: str | None = None, params: VOParams | None = None, progress: bool = False
+) -> tuple[NDArray[np.int64], NDArray[np.float64], list[FrameQuality]]:
+    """Estimate the pose of every synchronised stereo pair of a bag.
+
+    Returns:
+        (N,) stamps in nanoseconds, (N, 4, 4) poses and the per-frame quality
+        (its ``stamp`` in seconds).
+
+    Raises:
+        BagError, CalibrationError: see :func:`bag_stereo_frames`.
+        OdometryError: no usable frame.
+    """
+    camera, pairs = bag_stereo_frames(bag_path, namespace=namespace)
+    stamps: list[int] = []
+
+    def frames() -> Iterator[tuple[float, NDArray[np.uint8], NDArray[np.uint8]]]:
+        for stamp_ns, left, right in tqdm(pairs, desc="odometry", unit="frame", disable=not progress):
+            stamps.append(stamp_ns)
+            yield stamp_ns / _NS_PER_S, left, right
+
+    poses, qualities = estimate_poses(camera, frames(), params=params)
+    return np.array(stamps, dtype=np.int64), poses, qualities
+
+
+# --------------------------------------------------------------------------- online use (the node)
+
+
+class OnlineOdometry:
+    """Poses for the labeler node when no pose topic is configured (``pose_source: odometry``).
+
+    ``add(stamp_ns, left, right)`` returns the pose ``T_world_left`` of the
+    pair, or None when the frame is unreliable (the node then skips it, as
+    for a missing pose). :attr:`last_quality` explains the decision.
+    """
+
+    def __init__(self, camera: StereoCamera, params: VOParams | None = None) -> None:
+        self._vo = StereoOdometry(camera, params)
+        self.last_quality: FrameQuality | None = None
+
+    @property
+    def camera(self) -> StereoCamera:
+        """The stereo camera the odometry was built for."""
+        return self._vo.camera
+
+    def add(self, stamp_ns: int, left: NDArray[np.uint8], right: NDArray[np.uint8]) -> NDArray[np.float64] | None:
+        """Pose of a new pair (4x4, metres), or None when it is unreliable."""
+        result = self._vo.add(left, right, stamp_ns / _NS_PER_S)
+        self.last_quality = result.quality
+        return result.pose if result.quality.reliable else None
+
+
+# --------------------------------------------------------------------------- files and the command
+
+
+def quality_paths(out: Path | str) -> tuple[Path, Path]:
+    """Where :func:`odometry_command` writes the quality of ``out``: ``<out stem>.quality.csv`` and ``.json``."""
+    out = Path(out)
+    base = out.with_suffix("") if out.suffix else out
+    return base.with_name(base.name + ".quality.csv"), base.with_name(base.name + ".quality.json")
+
+
+def _json_safe(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {str(k): _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def write_quality(csv_path: Path | str, qualities: list[FrameQuality]) -> None:
+    """Write the per-frame quality as CSV (one row per frame, the fields of :class:`FrameQuality`)."""
+    names = list(asdict(qualities[0])) if qualities else list(FrameQuality.__dataclass_fields__)
+    with Path(csv_path).open("w", newline="", encoding="utf-8") as handle:
+        writer = csv.DictWriter(handle, fieldnames=names)
+        writer.writeheader()
+        for q in qualities:
+            writer.writerow(asdict(q))
+
+
+def _is_bag(path: Path) -> bool:
+    return path.suffix == ".mcap" or (path.is_dir() and (path / "metadata.yaml").is_file())
+
+
+def odometry_command(
+    input_path: Path | str,
+    out: Path | str,
+    *,
+    sequence: str | None = None,
+    namespace: str | None = None,
+    params: VOParams | None = None,
+    lengths: tuple[float, ...] = SHORT_LENGTHS,
+    step: int = 1,
+    progress: bool = True,
+    echo: Callable[[str], None] | None = print,
+) -> dict[str, Any]:
+    """Estimate poses of a sequence folder or a bag, write them and their quality, evaluate against ground truth.
+
+    Args:
+        input_path: KITTI-layout root/sequence folder, or a rosbag2 folder / ``.mcap`` file.
+        out: pose file to write (KITTI format); the quality goes beside it (:func:`quality_paths`).
+        sequence: sequence of a root holding several.
+        namespace: stereo topic namespace of a bag (default: detected).
+        params: odometry parameters.
+        lengths: sub-sequence lengths (metres) of the KITTI metrics.
+        step: first frames every ``step`` frames for the metrics.
+        progress: show a progress bar.
+        echo: where the summary lines go (None: silent).
+
+    Returns:
+        The content of the quality JSON: ``input``, ``frames``, ``reliable_frames``,
+        ``unreliable`` (list of ``{frame, status, message}``), ``runtime_s``,
+        ``ms_per_frame``, ``metrics`` (None without ground truth) and ``quality`` (per frame).
+
+    Raises:
+        DatasetError, BagError: unreadable input.
+        OdometryError: no usable frame (too little texture, no motion).
+    """
+    input_path, out = Path(input_path), Path(out)
+    started = time.perf_counter()
+    ground_truth = None
+    if _is_bag(input_path):
+        _, poses, qualities = estimate_bag_poses(input_path, namespace=namespace, params=params, progress=progress)
+    else:
+        seq = open_sequence(input_path, sequence=sequence)
+        poses, qualities = estimate_poses(seq.camera, _sequence_frames(seq, range(len(seq)), progress), params=params)
+        ground_truth = seq.poses
+    runtime = time.perf_counter() - started
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_poses(out, poses)
+    csv_path, json_path = quality_paths(out)
+    write_quality(csv_path, qualities)
+    metrics: OdometryMetrics | None = None
+    if ground_truth is not None:
+        # World = first frame's left camera for both, as the metrics compare relative motions only.
+        metrics = evaluate_odometry(poses, ground_truth, lengths=lengths, step=step)
+    unreliable = [{"frame": q.index, "status": q.status, "message": q.message} for q in qualities if not q.reliable]
+    report: dict[str, Any] = {
+        "input": str(input_path),
+        "poses": str(out),
+        "frames": len(qualities),
+        "reliable_frames": len(qualities) - len(unreliable),
+        "unreliable": unreliable,
+        "runtime_s": runtime,
+        "ms_per_frame": 1000.0 * runtime / max(len(qualities), 1),
+        "metrics": None if metrics is None else asdict(metrics),
+        "quality": [asdict(q) for q in qualities],
+    }
+    json_path.write_text(json.dumps(_json_safe(report), indent=2, allow_nan=False) + "\n", encoding="utf-8")
+    if echo is not None:
+        echo(f"{len(qualities)} frames, {report['reliable_frames']} reliable, {report['ms_per_frame']:.0f} ms/frame")
+        for item in unreliable:
+            echo(f"  frame {item['frame']}: {item['status']}: {item['message']}")
+        if metrics is not None:
+            echo("against ground truth: " + metrics.summary())
+        echo(f"wrote {out}, {csv_path}, {json_path}")
+    return report

@@ -1,0 +1,624 @@
+"""Feature-based stereo visual odometry for rectified pairs: poses for sequences that have none.
+
+The paper estimated the poses of its KITTI multiview scenes with libviso2;
+this module is the package's own counterpart, built on OpenCV features:
+
+1. **Features.** ORB corners of the left image, bucketed on a grid so that
+   they cover the whole image rather than the most textured facade.
+2. **Stereo matching.** Each left feature is matched to an ORB feature of the
+   right image on the same row (the epipolar constraint of a rectified pair:
+   ``|v_l - v_r| <= epipolar_tolerance_px``, disparity in range), with
+   Lowe's ratio test; the right position is then refined to sub-pixel
+   precision by Lucas-Kanade along the row. Depth ``z = fx b / d``.
+3. **Frame-to-frame matching.** The features of the new frame are matched to
+   those of the reference frame (the last reliable one) within a radius of
+   where the constant-velocity prediction puts them (repetitive windows
+   defeat an unrestricted search), then refined by Lucas-Kanade from the
+   reference position.
+4. **Pose.** PnP with RANSAC (seeded: ``cv2.setRNGSeed``) from the reference
+   frame's 3D points to the new left image, then a robust (Huber)
+   least-squares refinement of the stereo reprojection error in both
+   directions (reference points into the new left and right images, new
+   points into the reference images).
+5. **Windowed refinement.** Features keep a track id while they are matched
+   from frame to frame; a small bundle adjustment over the last
+   ``window`` reliable frames (oldest pose fixed) moves poses and track
+   points to minimise the stereo reprojection error of every observation.
+
+Every frame gets a :class:`FrameQuality`: feature, match and inlier counts,
+the RMS reprojection error of the inliers and a status. A frame with too
+little texture, too few matches or inliers or too large an error is flagged
+unreliable: its pose is only a constant-velocity guess, it is not used as a
+reference, and callers exclude it from labeling.
+
+Poses are ``T_world_left`` 4x4 (metres), world = left camera of the first
+frame, as in KITTI's pose files.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import cv2
+import numpy as np
+import scipy.sparse
+from numpy.typing import NDArray
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from selfcontra_ros.errors import SelfContraError
+from selfcontra_ros.geometry import StereoCamera, invert_pose
+
+__all__ = [
+    "STATUSES",
+    "FrameQuality",
+    "OdometryError",
+    "OdometryResult",
+    "StereoOdometry",
+    "VOParams",
+]
+
+F64 = NDArray[np.float64]
+
+#: Frame statuses: the first three are reliable.
+STATUSES = ("first", "ok", "static", "few_features", "few_matches", "few_inliers", "high_error")
+_RELIABLE = frozenset(("first", "ok", "static"))
+
+
+class OdometryError(SelfContraError):
+    """Visual odometry cannot estimate poses: too little texture, no motion, or bad input images."""
+
+
+@dataclass(frozen=True)
+class VOParams:
+    """Parameters of :class:`StereoOdometry` (pixels unless stated otherwise).
+
+    Attributes:
+        features: left features kept per frame after bucketing.
+        grid_rows: bucketing grid rows (each cell keeps ``features / cells`` corners).
+        grid_cols: bucketing grid columns.
+        fast_threshold: FAST threshold of the ORB detector (grey levels); low
+            so that weakly textured surfaces still give corners.
+        min_disparity: smallest stereo disparity kept; far points fix rotation
+            but their depth is noise, so 1 px (about 380 m on KITTI) is the floor.
+        max_disparity: largest disparity searched.
+        epipolar_tolerance_px: largest row difference of a stereo match after
+            sub-pixel refinement.
+        ratio: Lowe's ratio of best to second-best descriptor distance.
+        max_descriptor_distance: largest Hamming distance of an accepted ORB match (of 256 bits).
+        search_radius_px: frame-to-frame search radius around the predicted position.
+        first_search_radius_px: the same when no motion prediction exists (second frame, after a failure).
+        lk_window: Lucas-Kanade window side for the sub-pixel refinements.
+        ransac_threshold_px: PnP RANSAC inlier threshold.
+        ransac_iterations: PnP RANSAC iterations.
+        min_features: fewer left features than this: ``few_features``.
+        min_matches: fewer frame-to-frame matches than this: ``few_matches``.
+        min_inliers: fewer PnP inliers than this after refinement: ``few_inliers``.
+        max_reprojection_error_px: RMS reprojection error of the inliers above
+            this: ``high_error``.
+        static_flow_px: median image motion of the inliers below this: the frame is ``static``.
+        window: frames of the windowed bundle adjustment (<= 1 switches it off).
+        seed: RANSAC seed (``cv2.setRNGSeed``) for reproducible poses.
+    """
+
+    features: int = 2000
+    grid_rows: int = 4
+    grid_cols: int = 12
+    fast_threshold: int = 7
+    min_disparity: float = 1.0
+    max_disparity: float = 250.0
+    epipolar_tolerance_px: float = 1.0
+    ratio: float = 0.85
+    max_descriptor_distance: int = 70
+    search_radius_px: float = 30.0
+    first_search_radius_px: float = 150.0
+    lk_window: int = 11
+    ransac_threshold_px: float = 1.5
+    ransac_iterations: int = 300
+    min_features: int = 60
+    min_matches: int = 40
+    min_inliers: int = 25
+    max_reprojection_error_px: float = 1.5
+    static_flow_px: float = 0.3
+    window: int = 5
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        positive = ("features", "grid_rows", "grid_cols", "lk_window", "ransac_iterations", "min_inliers")
+        for name in positive:
+            if int(getattr(self, name)) < 1:
+                raise OdometryError(f"VOParams.{name} must be >= 1, got {getattr(self, name)!r}")
+        if not 0 < self.min_disparity < self.max_disparity:
+            raise OdometryError(
+                f"VOParams needs 0 < min_disparity < max_disparity, got {self.min_disparity}, {self.max_disparity}"
+            )
+        if not 0 < self.ratio <= 1:
+            raise OdometryError(f"VOParams.ratio must be in (0, 1], got {self.ratio}")
+
+
+@dataclass(frozen=True)
+class FrameQuality:
+    """How far the pose of one frame can be trusted.
+
+    Attributes:
+        index: frame number (order of :meth:`StereoOdometry.add` calls, from 0).
+        stamp: the caller's stamp (seconds or nanoseconds, as given).
+        status: one of :data:`STATUSES`.
+        reliable: the pose is an estimate, not a guess (status first, ok or static).
+        features: left features detected.
+        stereo_matches: left features with a stereo match (a 3D point).
+        temporal_matches: matches with the reference frame.
+        inliers: matches consistent with the final pose.
+        reprojection_error_px: RMS stereo reprojection error of the inliers (NaN without a pose).
+        translation_m: distance moved since the previous frame, metres.
+        rotation_deg: rotation since the previous frame, degrees.
+        reference: the frame the pose was estimated from (-1 for the first frame).
+        message: why the frame is unreliable (empty when reliable).
+    """
+
+    index: int
+    stamp: float
+    status: str
+    reliable: bool
+    features: int
+    stereo_matches: int
+    temporal_matches: int = 0
+    inliers: int = 0
+    reprojection_error_px: float = float("nan")
+    translation_m: float = 0.0
+    rotation_deg: float = 0.0
+    reference: int = -1
+    message: str = ""
+
+
+@dataclass(frozen=True)
+class OdometryResult:
+    """The outcome of one frame: ``pose`` (4x4 ``T_world_left``, metres) and its quality."""
+
+    pose: F64
+    quality: FrameQuality
+
+
+@dataclass
+class _Features:
+    """Stereo features of one frame; row ``i`` of each array describes feature ``i``."""
+
+    uv: F64  # (N, 2) left pixel positions
+    disparity: F64  # (N,) pixels; u_right = u_left - disparity
+    descriptors: NDArray[np.uint8]  # (N, 32) ORB
+    points: F64  # (N, 3) left-camera frame, metres
+    track_ids: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+
+
+@dataclass
+class _WindowFrame:
+    """A reliable frame kept for the windowed bundle adjustment."""
+
+    index: int
+    pose: F64  # T_world_left
+    track_ids: NDArray[np.int64]
+    uv: F64
+    u_right: F64
+
+
+def _grey(image: NDArray[np.uint8], what: str) -> NDArray[np.uint8]:
+    array = np.asarray(image)
+    if array.dtype != np.uint8:
+        raise OdometryError(f"{what} image must be uint8, got {array.dtype}")
+    if array.ndim == 3 and array.shape[2] == 3:
+        return np.ascontiguousarray(cv2.cvtColor(array, cv2.COLOR_RGB2GRAY))
+    if array.ndim != 2:
+        raise OdometryError(f"{what} image must be HxW grey or HxWx3 RGB, got shape {array.shape}")
+    return np.ascontiguousarray(array)
+
+
+def _rotation_deg(rotation: F64) -> float:
+    cos = np.clip((np.trace(rotation) - 1.0) / 2.0, -1.0, 1.0)
+    return float(np.degrees(np.arccos(cos)))
+
+
+def _pose_from_vector(x: F64) -> F64:
+    """4x4 transform of a 6-vector (rotation vector, translation)."""
+    pose = np.eye(4)
+    pose[:3, :3] = Rotation.from_rotvec(x[:3]).as_matrix()
+    pose[:3, 3] = x[3:6]
+    return pose
+
+
+def _vector_from_pose(pose: F64) -> F64:
+    return np.concatenate([Rotation.from_matrix(pose[:3, :3]).as_rotvec(), pose[:3, 3]])
+
+
+class StereoOdometry:
+    """Stereo visual odometry fed one rectified pair at a time, online or offline.
+
+    Example::
+
+        vo = StereoOdometry(camera)
+        for frame in sequence:
+            result = vo.add(frame.left, frame.right, stamp=frame.stamp)
+            if result.quality.reliable:
+                use(result.pose)
+
+    :meth:`add` returns the pose at once (for a ROS node); the windowed
+    refinement keeps improving the last ``window`` poses, and
+    :attr:`poses` holds the final values (what offline runs write).
+    """
+
+    def __init__(self, camera: StereoCamera, params: VOParams | None = None) -> None:
+        self.camera = camera
+        self.params = params or VOParams()
+        p = self.params
+        # Many more corners than kept: bucketing then picks the strongest per cell.
+        self._orb = cv2.ORB.create(
+            nfeatures=4 * p.features, scaleFactor=1.2, nlevels=4, edgeThreshold=19, patchSize=19,
+            fastThreshold=p.fast_threshold,
+        )  # fmt: skip
+        self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+        self._lk_criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
+        self.poses: list[F64] = []
+        self.qualities: list[FrameQuality] = []
+        self._reference: tuple[int, NDArray[np.uint8], _Features] | None = None
+        self._velocity: F64 | None = None  # T_ref_cur per frame of the last reliable step
+        self._next_track = 0
+        self._window: deque[_WindowFrame] = deque(maxlen=max(self.params.window, 1))
+
+    # ------------------------------------------------------------------ features and stereo
+
+    def _detect(self, image: NDArray[np.uint8]) -> tuple[F64, NDArray[np.uint8], NDArray[np.int64]]:
+        """ORB corners bucketed over the grid: positions (N, 2), descriptors (N, 32), pyramid octaves (N,)."""
+        p = self.params
+        keypoints = self._orb.detect(image, None)
+        if not keypoints:
+            return np.zeros((0, 2)), np.zeros((0, 32), np.uint8), np.zeros(0, np.int64)
+        uv = np.array([k.pt for k in keypoints], dtype=np.float64)
+        response = np.array([k.response for k in keypoints])
+        h, w = image.shape
+        cell = (np.minimum(uv[:, 1] * p.grid_rows // h, p.grid_rows - 1) * p.grid_cols
+                + np.minimum(uv[:, 0] * p.grid_cols // w, p.grid_cols - 1)).astype(np.int64)  # fmt: skip
+        order = np.lexsort((-response, cell))
+        sorted_cells = cell[order]
+        first_of_cell = np.searchsorted(sorted_cells, sorted_cells, side="left")
+        rank = np.arange(order.size) - first_of_cell
+        per_cell = max(p.features // (p.grid_rows * p.grid_cols), 1)
+        keep = order[rank < per_cell]
+        kept, descriptors = self._orb.compute(image, [keypoints[i] for i in keep])
+        if descriptors is None or not kept:
+            return np.zeros((0, 2)), np.zeros((0, 32), np.uint8), np.zeros(0, np.int64)
+        uv = np.array([k.pt for k in kept], dtype=np.float64)
+        octave = np.array([k.octave for k in kept], dtype=np.int64)
+        return uv, np.asarray(descriptors, dtype=np.uint8), octave
+
+    def _all_corners(self, image: NDArray[np.uint8]) -> tuple[F64, NDArray[np.uint8]]:
+        """Every ORB corner of an image (no bucketing): the right image's candidates."""
+        keypoints, descriptors = self._orb.detectAndCompute(image, None)
+        if descriptors is None or not keypoints:
+            return np.zeros((0, 2)), np.zeros((0, 32), np.uint8)
+        return np.array([k.pt for k in keypoints], dtype=np.float64), np.asarray(descriptors, dtype=np.uint8)
+
+    def _ratio_matches(
+        self, query: NDArray[np.uint8], train: NDArray[np.uint8], mask: NDArray[np.bool_]
+    ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """Query/train index pairs passing the mask, the distance bound, the ratio test and uniqueness."""
+        if query.shape[0] == 0 or train.shape[0] == 0 or not mask.any():
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        knn = self._matcher.knnMatch(query, train, k=2, mask=mask.astype(np.uint8))
+        qi, ti, best, second = [], [], [], []
+        for pair in knn:
+            if not pair:
+                continue
+            qi.append(pair[0].queryIdx)
+            ti.append(pair[0].trainIdx)
+            best.append(pair[0].distance)
+            second.append(pair[1].distance if len(pair) > 1 else np.inf)
+        q, t = np.array(qi, np.int64), np.array(ti, np.int64)
+        b, s = np.array(best), np.array(second)
+        ok = (b <= self.params.max_descriptor_distance) & (b < self.params.ratio * s)
+        q, t, b = q[ok], t[ok], b[ok]
+        # One query per train feature: the closest wins, ties and the rest are dropped.
+        order = np.lexsort((b, t))
+        t_sorted = t[order]
+        first = np.ones(order.size, dtype=bool)
+        first[1:] = t_sorted[1:] != t_sorted[:-1]
+        keep = order[first]
+        return q[keep], t[keep]
+
+    def _lk(
+        self, source: NDArray[np.uint8], target: NDArray[np.uint8], points: F64, guess: F64
+    ) -> tuple[F64, NDArray[np.bool_]]:
+        """Lucas-Kanade positions in ``target`` of ``points`` of ``source``, started at ``guess``."""
+        if points.shape[0] == 0:
+            return np.zeros((0, 2)), np.zeros(0, bool)
+        size = self.params.lk_window
+        found, status, _ = cv2.calcOpticalFlowPyrLK(
+            source, target, points.astype(np.float32).reshape(-1, 1, 2), guess.astype(np.float32).reshape(-1, 1, 2),
+            winSize=(size, size), maxLevel=1, criteria=self._lk_criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+        )  # fmt: skip
+        return found.reshape(-1, 2).astype(np.float64), status.reshape(-1).astype(bool)
+
+    def _stereo(self, left: NDArray[np.uint8], right: NDArray[np.uint8]) -> tuple[_Features, int]:
+        """Stereo features of a pair and the number of left features detected."""
+        p = self.params
+        uv, descriptors, octave = self._detect(left)
+        ruv, rdesc = self._all_corners(right)
+        if uv.shape[0] == 0 or ruv.shape[0] == 0:
+            return _Features(np.zeros((0, 2)), np.zeros(0), np.zeros((0, 32), np.uint8), np.zeros((0, 3))), len(uv)
+        # Epipolar band: ORB positions of coarser octaves are coarser, so the band widens with the octave.
+        band = 2.0 * 1.2 ** octave[:, None] + p.epipolar_tolerance_px
+        disparity = uv[:, None, 0] - ruv[None, :, 0]
+        mask = (np.abs(uv[:, None, 1] - ruv[None, :, 1]) <= band) & (disparity >= p.min_disparity - 2.0)
+        mask &= disparity <= p.max_disparity
+        qi, ti = self._ratio_matches(descriptors, rdesc, mask)
+        guess = np.column_stack([ruv[ti, 0], uv[qi, 1]])
+        refined, ok = self._lk(left, right, uv[qi], guess)
+        d = uv[qi, 0] - refined[:, 0]
+        ok &= np.abs(refined[:, 1] - uv[qi, 1]) <= p.epipolar_tolerance_px
+        ok &= np.abs(refined[:, 0] - guess[:, 0]) <= 3.0
+        ok &= (d >= p.min_disparity) & (d <= p.max_disparity)
+        qi, d = qi[ok], d[ok]
+        cam = self.camera
+        z = cam.focal_baseline / d
+        points = np.column_stack([(uv[qi, 0] - cam.cx) * z / cam.fx, (uv[qi, 1] - cam.cy) * z / cam.fy, z])
+        return _Features(uv[qi], d, descriptors[qi], points), int(uv.shape[0])
+
+    # ------------------------------------------------------------------ projection and refinement
+
+    def _project(self, points: F64, pose: F64) -> tuple[F64, F64]:
+        """Left pixels (N, 2) and right column (N,) of points (N, 3) moved by ``pose`` into the camera."""
+        cam = self.camera
+        x = points @ pose[:3, :3].T + pose[:3, 3]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inv_z = np.where(x[:, 2] > 1e-6, 1.0 / x[:, 2], np.nan)
+        u = cam.fx * x[:, 0] * inv_z + cam.cx
+        v = cam.fy * x[:, 1] * inv_z + cam.cy
+        return np.column_stack([u, v]), u - cam.focal_baseline * inv_z
+
+    def _stereo_residuals(self, points: F64, pose: F64, uv: F64, u_right: F64) -> F64:
+        """(N, 3) reprojection residuals (u_left, v_left, u_right) in pixels; large where behind the camera."""
+        proj, proj_right = self._project(points, pose)
+        res = np.column_stack([proj - uv, proj_right - u_right])
+        return np.nan_to_num(res, nan=1e3)
+
+    def _refine_two_way(
+        self, pose: F64, ref: _Features, cur: _Features, ri: NDArray[np.int64], ci: NDArray[np.int64], cur_uv: F64
+    ) -> F64:
+        """Refine ``T_cur_ref`` by robust least squares on the stereo reprojection error both ways."""
+        ref_right = cur_uv[:, 0] - cur.disparity[ci]
+        ref_uv_right = ref.uv[ri, 0] - ref.disparity[ri]
+
+        def residuals(x: F64) -> F64:
+            t = _pose_from_vector(x)
+            forward = self._stereo_residuals(ref.points[ri], t, cur_uv, ref_right)
+            backward = self._stereo_residuals(cur.points[ci], invert_pose(t), ref.uv[ri], ref_uv_right)
+            return np.concatenate([forward.ravel(), backward.ravel()])
+
+        fit = least_squares(residuals, _vector_from_pose(pose), loss="huber", f_scale=1.0, method="trf", max_nfev=30)
+        return _pose_from_vector(fit.x)
+
+    # ------------------------------------------------------------------ the frame step
+
+    def add(self, left: NDArray[np.uint8], right: NDArray[np.uint8], stamp: float = 0.0) -> OdometryResult:
+        """Estimate the pose of a new rectified pair.
+
+        Args:
+            left: left image, HxW grey or HxWx3 RGB uint8, the camera's size.
+            right: right image, same shape.
+            stamp: the caller's time stamp, kept in the quality record.
+
+        Returns:
+            The pose ``T_world_left`` (world = left camera of the first frame)
+            and the frame's quality. An unreliable frame gets the
+            constant-velocity guess as its pose.
+
+        Raises:
+            OdometryError: images of the wrong type or size.
+        """
+        p = self.params
+        index = len(self.poses)
+        gl, gr = _grey(left, "left"), _grey(right, "right")
+        expected = (self.camera.height, self.camera.width)
+        if gl.shape != expected or gr.shape != expected:
+            raise OdometryError(
+                f"frame {index}: images are {gl.shape[::-1]} (left) and {gr.shape[::-1]} (right), "
+                f"expected {expected[::-1]} from the camera calibration"
+            )
+        cur, n_features = self._stereo(gl, gr)
+        common: dict[str, Any] = {
+            "index": index,
+            "stamp": float(stamp),
+            "features": n_features,
+            "stereo_matches": len(cur.uv),
+        }
+
+        if self._reference is None:
+            return self._first_or_fail(gl, cur, common)
+        ref_index, ref_image, ref = self._reference
+        ref_pose = self.poses[ref_index]
+        gap = index - ref_index
+        velocity = self._velocity
+        predicted = np.eye(4) if velocity is None else np.linalg.matrix_power(velocity, gap)  # T_ref_cur
+        guess_pose = ref_pose @ predicted
+
+        def fail(status: str, message: str, **extra: Any) -> OdometryResult:
+            quality = FrameQuality(
+                status=status, reliable=False, reference=ref_index, message=message, **common, **extra
+            )
+            return self._record(guess_pose, quality)
+
+        if n_features < p.min_features or len(cur.uv) < p.min_features // 2:
+            return fail("few_features", f"too little texture: {n_features} features, {len(cur.uv)} with a stereo match")
+
+        # Frame-to-frame matching within a radius of the predicted position.
+        pred_uv, _ = self._project(ref.points, invert_pose(predicted))
+        radius = p.search_radius_px * gap if velocity is not None else p.first_search_radius_px
+        dist2 = ((pred_uv[:, None, :] - cur.uv[None, :, :]) ** 2).sum(axis=2)
+        ri, ci = self._ratio_matches(ref.descriptors, cur.descriptors, np.nan_to_num(dist2, nan=np.inf) <= radius**2)
+        # Sub-pixel: follow each reference feature into the new image, started at its matched corner.
+        cur_uv, ok = self._lk(ref_image, gl, ref.uv[ri], cur.uv[ci])
+        ok &= np.linalg.norm(cur_uv - cur.uv[ci], axis=1) <= 3.0
+        ri, ci, cur_uv = ri[ok], ci[ok], cur_uv[ok]
+        if len(ri) < p.min_matches:
+            return fail("few_matches", f"only {len(ri)} matches with frame {ref_index} (need {p.min_matches})",
+                        temporal_matches=len(ri))  # fmt: skip
+
+        cv2.setRNGSeed(p.seed)
+        rvec0, _ = cv2.Rodrigues(invert_pose(predicted)[:3, :3])
+        tvec0 = invert_pose(predicted)[:3, 3].reshape(3, 1).copy()
+        found, rvec, tvec, inliers = cv2.solvePnPRansac(
+            ref.points[ri].astype(np.float64), cur_uv.astype(np.float64), self.camera.K, None,
+            rvec=rvec0.copy(), tvec=tvec0, useExtrinsicGuess=velocity is not None,
+            iterationsCount=p.ransac_iterations, reprojectionError=p.ransac_threshold_px, confidence=0.999,
+            flags=cv2.SOLVEPNP_ITERATIVE,
+        )  # fmt: skip
+        if not found or inliers is None or len(inliers) < p.min_inliers:
+            n = 0 if inliers is None else len(inliers)
+            return fail("few_inliers", f"PnP RANSAC found {n} inliers of {len(ri)} matches (need {p.min_inliers})",
+                        temporal_matches=len(ri), inliers=n)  # fmt: skip
+        t_cur_ref = np.eye(4)
+        t_cur_ref[:3, :3] = cv2.Rodrigues(rvec)[0]
+        t_cur_ref[:3, 3] = tvec.ravel()
+        keep = inliers.ravel()
+        t_cur_ref = self._refine_two_way(t_cur_ref, ref, cur, ri[keep], ci[keep], cur_uv[keep])
+        # Inliers of the refined pose among all matches: both directions within the RANSAC threshold.
+        forward = self._stereo_residuals(ref.points[ri], t_cur_ref, cur_uv, cur_uv[:, 0] - cur.disparity[ci])
+        backward = self._stereo_residuals(
+            cur.points[ci], invert_pose(t_cur_ref), ref.uv[ri], ref.uv[ri, 0] - ref.disparity[ri]
+        )
+        err = np.maximum(np.abs(forward).max(axis=1), np.abs(backward).max(axis=1))
+        inlier = err <= p.ransac_threshold_px * 1.5
+        n_in = int(inlier.sum())
+        rms = float(np.sqrt(np.mean(forward[inlier] ** 2))) if n_in else float("nan")
+        t_ref_cur = invert_pose(t_cur_ref)
+        extra = {"temporal_matches": len(ri), "inliers": n_in, "reprojection_error_px": rms}
+        if n_in < p.min_inliers:
+            return fail("few_inliers", f"{n_in} inliers after refinement (need {p.min_inliers})", **extra)
+        if not rms <= p.max_reprojection_error_px:
+            return fail("high_error", f"RMS reprojection error {rms:.2f} px > {p.max_reprojection_error_px}", **extra)
+
+        flow = float(np.median(np.linalg.norm(cur_uv[inlier] - ref.uv[ri[inlier]], axis=1)))
+        status = "static" if flow < p.static_flow_px else "ok"
+        if status == "static":
+            t_ref_cur = np.eye(4)  # below the noise: no motion rather than a random jitter
+        pose = ref_pose @ t_ref_cur
+        # Tracks: inlier matches inherit the reference's id, everything else starts a new track.
+        ids = np.arange(self._next_track, self._next_track + len(cur.uv), dtype=np.int64)
+        ids[ci[inlier]] = ref.track_ids[ri[inlier]]
+        self._next_track += len(cur.uv)
+        cur.track_ids = ids
+        quality = FrameQuality(status=status, reliable=True, reference=ref_index, **common, **extra)  # type: ignore[arg-type]
+        result = self._record(pose, quality)
+        self._velocity = np.linalg.matrix_power(t_ref_cur, 1) if gap == 1 else _step_of(t_ref_cur, gap)
+        if status == "ok" or self._reference is None:
+            self._reference = (index, gl, cur)
+        if status == "ok":
+            self._window.append(_WindowFrame(index, pose, ids, cur.uv.copy(), cur.uv[:, 0] - cur.disparity))
+            self._bundle_adjust()
+            return OdometryResult(self.poses[index].copy(), result.quality)
+        return result
+
+    def _first_or_fail(self, image: NDArray[np.uint8], cur: _Features, common: dict[str, Any]) -> OdometryResult:
+        """The first frame with enough stereo features anchors the world frame."""
+        p = self.params
+        if common["features"] < p.min_features or len(cur.uv) < p.min_features // 2:
+            quality = FrameQuality(status="few_features", reliable=False,
+                                   message=f"too little texture: {common['features']} features, "
+                                   f"{len(cur.uv)} with a stereo match", **common)  # fmt: skip
+            return self._record(np.eye(4), quality)
+        index = int(common["index"])
+        cur.track_ids = np.arange(self._next_track, self._next_track + len(cur.uv), dtype=np.int64)
+        self._next_track += len(cur.uv)
+        self._reference = (index, image, cur)
+        self._window.append(_WindowFrame(index, np.eye(4), cur.track_ids, cur.uv.copy(), cur.uv[:, 0] - cur.disparity))
+        return self._record(np.eye(4), FrameQuality(status="first", reliable=True, **common))
+
+    def _record(self, pose: F64, quality: FrameQuality) -> OdometryResult:
+        previous = self.poses[-1] if self.poses else pose
+        step = invert_pose(previous) @ pose
+        quality = replace(
+            quality, translation_m=float(np.linalg.norm(step[:3, 3])), rotation_deg=_rotation_deg(step[:3, :3])
+        )
+        self.poses.append(pose.copy())
+        self.qualities.append(quality)
+        return OdometryResult(pose.copy(), quality)
+
+    # ------------------------------------------------------------------ windowed bundle adjustment
+
+    def _bundle_adjust(self) -> None:
+        """Refine the window's poses (all but the oldest) and its tracks' points; update :attr:`poses`."""
+        frames = list(self._window)
+        if len(frames) < 3:
+            return
+        cam = self.camera
+        all_ids = np.concatenate([f.track_ids for f in frames])
+        unique, counts = np.unique(all_ids, return_counts=True)
+        shared = unique[counts >= 2]
+        if shared.size < self.params.min_inliers:
+            return
+        obs_frame, obs_point, obs_uv, obs_ur = [], [], [], []
+        world_points = np.zeros((shared.size, 3))
+        weight = np.zeros(shared.size)
+        for k, f in enumerate(frames):
+            sel = np.isin(f.track_ids, shared)
+            idx = np.searchsorted(shared, f.track_ids[sel])
+            obs_frame.append(np.full(idx.size, k))
+            obs_point.append(idx)
+            obs_uv.append(f.uv[sel])
+            obs_ur.append(f.u_right[sel])
+            d = f.uv[sel, 0] - f.u_right[sel]
+            z = cam.focal_baseline / d
+            local = np.column_stack([(f.uv[sel, 0] - cam.cx) * z / cam.fx, (f.uv[sel, 1] - cam.cy) * z / cam.fy, z])
+            # Initial point: disparity-weighted mean of the triangulations (near views are more precise).
+            np.add.at(world_points, idx, (local @ f.pose[:3, :3].T + f.pose[:3, 3]) * d[:, None] ** 2)
+            np.add.at(weight, idx, d**2)
+        world_points /= weight[:, None]
+        fi = np.concatenate(obs_frame)
+        pi = np.concatenate(obs_point)
+        uv = np.concatenate(obs_uv)
+        ur = np.concatenate(obs_ur)
+        n_free = len(frames) - 1
+        fixed = invert_pose(frames[0].pose)
+        x0 = np.concatenate([np.concatenate([_vector_from_pose(invert_pose(f.pose)) for f in frames[1:]]),
+                             world_points.ravel()])  # fmt: skip
+
+        def residuals(x: F64) -> F64:
+            cams = x[: 6 * n_free].reshape(n_free, 6)
+            pts = x[6 * n_free :].reshape(-1, 3)
+            rot = np.concatenate([fixed[None, :3, :3], Rotation.from_rotvec(cams[:, :3]).as_matrix()])
+            trans = np.concatenate([fixed[None, :3, 3], cams[:, 3:]])
+            xc = np.einsum("nij,nj->ni", rot[fi], pts[pi]) + trans[fi]
+            z = np.where(xc[:, 2] > 1e-3, xc[:, 2], 1e-3)
+            u = cam.fx * xc[:, 0] / z + cam.cx
+            v = cam.fy * xc[:, 1] / z + cam.cy
+            return np.column_stack([u - uv[:, 0], v - uv[:, 1], u - cam.focal_baseline / z - ur]).ravel()
+
+        n_obs = fi.size
+        rows = np.repeat(np.arange(3 * n_obs), 9).reshape(n_obs, 27)
+        cols = np.empty((n_obs, 3, 9), dtype=np.int64)
+        free = fi > 0
+        cam_cols = 6 * (fi[:, None] - 1) + np.arange(6)
+        pt_cols = 6 * n_free + 3 * pi[:, None] + np.arange(3)
+        cols[:, :, :6] = np.where(free[:, None], cam_cols, pt_cols[:, :1])[:, None, :]
+        cols[:, :, 6:] = pt_cols[:, None, :]
+        sparsity = scipy.sparse.coo_matrix(
+            (np.ones(rows.size), (rows.ravel(), cols.reshape(n_obs, 27).ravel())), shape=(3 * n_obs, x0.size)
+        ).tocsr()
+        sparsity.data[:] = 1.0
+        fit = least_squares(
+            residuals, x0, jac_sparsity=sparsity, loss="huber", f_scale=1.0, method="trf", x_scale="jac",
+            max_nfev=15, tr_solver="lsmr",
+        )  # fmt: skip
+        cams = fit.x[: 6 * n_free].reshape(n_free, 6)
+        for f, vec in zip(frames[1:], cams, strict=True):
+            f.pose = invert_pose(_pose_from_vector(vec))
+            self.poses[f.index] = f.pose.copy()
+        # Keep the reference frame's 3D points as they are (its own stereo): only poses move.
+
+
+def _step_of(motion: F64, steps: int) -> F64:
+    """The per-frame motion whose ``steps``-th power is ``motion`` (screw interpolation via the rotation vector)."""
+    step = np.eye(4)
+    step[:3, :3] = Rotation.from_rotvec(Rotation.from_matrix(motion[:3, :3]).as_rotvec() / steps).as_matrix()
+    step[:3, 3] = motion[:3, 3] / steps
+    return step

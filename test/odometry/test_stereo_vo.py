@@ -1,0 +1,165 @@
+"""Stereo visual odometry on synthetic sequences with exact poses, and on the real KITTI 06 sample."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from selfcontra_ros.bags.kitti2mcap import kitti_to_mcap
+from selfcontra_ros.datasets.kitti import open_sequence, read_poses
+from selfcontra_ros.datasets.synthetic import write_sequence
+from selfcontra_ros.geometry import invert_pose
+from selfcontra_ros.odometry.metrics import evaluate_odometry
+from selfcontra_ros.odometry.run import (
+    OnlineOdometry,
+    check_usable,
+    estimate_sequence_poses,
+    odometry_command,
+    poses_for_sequence,
+    quality_paths,
+)
+from selfcontra_ros.odometry.stereo_vo import OdometryError, StereoOdometry
+
+WIDTH, HEIGHT, FRAMES = 640, 192, 10
+
+
+@pytest.fixture(scope="module")
+def street(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 10-frame synthetic street (640x192, about 1 m per frame) in the KITTI layout."""
+    root = tmp_path_factory.mktemp("street")
+    write_sequence(root, scene="street", frames=FRAMES, seed=1, width=WIDTH, height=HEIGHT)
+    return root
+
+
+@pytest.fixture(scope="module")
+def street_poses(street: Path) -> tuple[np.ndarray, list]:
+    return estimate_sequence_poses(street)
+
+
+def test_street_poses_match_the_truth(street: Path, street_poses: tuple[np.ndarray, list]) -> None:
+    poses, quality = street_poses
+    truth = open_sequence(street).poses
+    assert truth is not None
+    assert all(q.reliable for q in quality)
+    assert quality[0].status == "first" and all(q.status == "ok" for q in quality[1:])
+    m = evaluate_odometry(poses, truth, lengths=(2.0, 5.0))
+    assert m.translation_error_pct < 1.5
+    assert m.rotation_error_deg_per_m < 0.1
+    # Every frame's position within 5 cm of the truth after ~9 m.
+    error = np.linalg.norm(poses[:, :3, 3] - truth[:, :3, 3], axis=1)
+    assert error.max() < 0.05
+    assert all(q.inliers >= 50 and q.reprojection_error_px < 1.0 for q in quality[1:])
+
+
+def test_orbit_rotating_camera(tmp_path: Path) -> None:
+    write_sequence(tmp_path, scene="orbit", frames=6, seed=2, width=WIDTH, height=HEIGHT)
+    poses, quality = estimate_sequence_poses(tmp_path)
+    truth = open_sequence(tmp_path).poses
+    assert truth is not None and all(q.reliable for q in quality)
+    # The camera turns a few degrees per frame around the objects: each step's rotation within 0.1 deg,
+    # every position within 4 cm of the truth after about 3.5 m.
+    assert np.linalg.norm(poses[:, :3, 3] - truth[:, :3, 3], axis=1).max() < 0.04
+    for k in range(1, len(poses)):
+        step_est = invert_pose(poses[k - 1]) @ poses[k]
+        step_gt = invert_pose(truth[k - 1]) @ truth[k]
+        err = invert_pose(step_gt) @ step_est
+        angle = np.degrees(np.arccos(np.clip((np.trace(err[:3, :3]) - 1) / 2, -1, 1)))
+        assert angle < 0.1
+
+
+def test_stereo_points_lie_on_the_true_depth(street: Path) -> None:
+    seq = open_sequence(street)
+    frame = seq[0]
+    assert frame.gt_disparity is not None
+    vo = StereoOdometry(seq.camera)
+    features, _ = vo._stereo(frame.left, frame.right)
+    u = np.rint(features.uv[:, 0]).astype(int)
+    v = np.rint(features.uv[:, 1]).astype(int)
+    truth = frame.gt_disparity[v, u]
+    ok = np.isfinite(truth)
+    assert ok.sum() > 200
+    # Corners sit on depth edges now and then; the bulk must be sub-pixel.
+    assert np.median(np.abs(features.disparity[ok] - truth[ok])) < 0.25
+    assert np.mean(np.abs(features.disparity[ok] - truth[ok]) < 1.0) > 0.9
+
+
+def test_deterministic(street: Path, street_poses: tuple[np.ndarray, list]) -> None:
+    again, _ = estimate_sequence_poses(street, frames=slice(0, FRAMES))
+    np.testing.assert_array_equal(again, street_poses[0])
+
+
+def test_textureless_and_static_frames_are_flagged(street: Path, street_poses: tuple[np.ndarray, list]) -> None:
+    seq = open_sequence(street)
+    vo = OnlineOdometry(seq.camera)
+    blank = np.full((HEIGHT, WIDTH), 128, np.uint8)
+    frames = [seq[0], seq[1]]
+    assert vo.add(0, frames[0].left, frames[0].right) is not None
+    assert vo.add(1, blank, blank) is None
+    assert vo.last_quality is not None and vo.last_quality.status == "few_features"
+    assert "texture" in vo.last_quality.message
+    # The next frame is matched against frame 0 (the last reliable one) and is right again.
+    pose = vo.add(2, frames[1].left, frames[1].right)
+    assert pose is not None and vo.last_quality.reference == 0
+    truth = seq.poses
+    assert truth is not None
+    assert np.linalg.norm(pose[:3, 3] - truth[1][:3, 3]) < 0.03
+    # The same pair again: no motion, an identity step rather than jitter.
+    assert np.allclose(vo.add(3, frames[1].left, frames[1].right), pose)
+    assert vo.last_quality.status == "static" and vo.last_quality.reliable
+
+
+def test_whole_sequence_without_texture_or_motion_is_an_error(street: Path) -> None:
+    seq = open_sequence(street)
+    vo = StereoOdometry(seq.camera)
+    rng = np.random.default_rng(0)
+    for _ in range(3):
+        flat = np.clip(rng.normal(128, 0.5, (HEIGHT, WIDTH)), 0, 255).astype(np.uint8)
+        vo.add(flat, flat)
+    assert not any(q.reliable for q in vo.qualities)
+    with pytest.raises(OdometryError, match="too little texture"):
+        check_usable(vo.qualities)
+    still = StereoOdometry(seq.camera)
+    frame = seq[3]
+    for _ in range(3):
+        still.add(frame.left, frame.right)
+    with pytest.raises(OdometryError, match="no motion"):
+        check_usable(still.qualities)
+    with pytest.raises(OdometryError, match="expected"):
+        still.add(frame.left[:, :100], frame.right[:, :100])
+
+
+def test_command_sequence_and_bag_agree(street: Path, street_poses: tuple[np.ndarray, list], tmp_path: Path) -> None:
+    out = tmp_path / "poses.txt"
+    lines: list[str] = []
+    report = odometry_command(street, out, progress=False, echo=lines.append)
+    np.testing.assert_allclose(read_poses(out), street_poses[0], atol=1e-8)  # 9 significant digits on disk
+    csv_path, json_path = quality_paths(out)
+    assert csv_path.read_text().count("\n") == FRAMES + 1 and json_path.is_file()
+    assert report["metrics"]["translation_error_pct"] < 1.5
+    assert any("against ground truth" in line for line in lines)
+
+    bag = kitti_to_mcap(street, tmp_path / "bag", progress=False)
+    bag_report = odometry_command(bag, tmp_path / "bag_poses.txt", progress=False, echo=None)
+    assert bag_report["frames"] == FRAMES and bag_report["metrics"] is None
+    np.testing.assert_allclose(read_poses(tmp_path / "bag_poses.txt"), read_poses(out), atol=1e-6)
+
+    poses, reliable = poses_for_sequence(open_sequence(street))
+    assert reliable.shape == (FRAMES,) and reliable.all()
+    np.testing.assert_allclose(poses, street_poses[0])
+
+
+def test_kitti_06_drift(shared_data: Path) -> None:
+    started = time.perf_counter()
+    poses, quality = estimate_sequence_poses(shared_data / "kitti_odometry")
+    elapsed = time.perf_counter() - started
+    truth = open_sequence(shared_data / "kitti_odometry").poses
+    assert truth is not None and len(poses) == 51
+    assert all(q.reliable for q in quality)
+    m = evaluate_odometry(poses, truth)
+    # libviso2's level on KITTI; this 60 m straight stretch gives about 1.7 %.
+    assert m.translation_error_pct < 2.0, m.summary()
+    assert m.rotation_error_deg_per_m < 0.05, m.summary()
+    assert elapsed / len(poses) < 1.0
