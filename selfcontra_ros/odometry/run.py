@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import csv
 import json
-import math
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator
@@ -45,6 +44,7 @@ from selfcontra_ros.datasets.kitti import OdometrySequence, StereoScene, open_se
 from selfcontra_ros.geometry import StereoCamera
 from selfcontra_ros.odometry.metrics import SHORT_LENGTHS, OdometryMetrics, evaluate_odometry
 from selfcontra_ros.odometry.stereo_vo import FrameQuality, OdometryError, StereoOdometry, VOParams
+from selfcontra_ros.pipeline import json_safe
 
 __all__ = [
     "OnlineOdometry",
@@ -303,18 +303,6 @@ def quality_paths(out: Path | str) -> tuple[Path, Path]:
     return base.with_name(base.name + ".quality.csv"), base.with_name(base.name + ".quality.json")
 
 
-def _json_safe(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {str(k): _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    if isinstance(value, np.generic):
-        value = value.item()
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
-
-
 def write_quality(csv_path: Path | str, qualities: list[FrameQuality]) -> None:
     """Write the per-frame quality as CSV (one row per frame, the fields of :class:`FrameQuality`)."""
     names = list(asdict(qualities[0])) if qualities else list(FrameQuality.__dataclass_fields__)
@@ -393,7 +381,7 @@ def odometry_command(
         "metrics": None if metrics is None else asdict(metrics),
         "quality": [asdict(q) for q in qualities],
     }
-    json_path.write_text(json.dumps(_json_safe(report), indent=2, allow_nan=False) + "\n", encoding="utf-8")
+    json_path.write_text(json.dumps(json_safe(report), indent=2, allow_nan=False) + "\n", encoding="utf-8")
     if echo is not None:
         echo(f"{len(qualities)} frames, {report['reliable_frames']} reliable, {report['ms_per_frame']:.0f} ms/frame")
         for item in unreliable:

@@ -438,3 +438,39 @@ def test_external_disparity_mode_labels_the_given_disparities(
     done = spin_nodes([node, ros_node], lambda: recorder.count(topics.LABELS_COLOR) >= FRAMES - DELAY, 20.0)
     assert done, (recorder.stats, node.stats())
     check_outputs(recorder, frames, params_file, flushed=False)
+
+
+def test_odometry_pose_source_labels_with_visual_odometry_poses(
+    frames: Frames, params_file: Path, ros_node: Any, labeler_node: Callable[..., Any]
+) -> None:
+    """pose_source odometry: no pose topic; the labels equal a session fed the package's odometry poses."""
+    from selfcontra_ros.odometry.run import OnlineOdometry
+    from selfcontra_ros.ros.conversions import image_to_numpy
+
+    odometry = OnlineOdometry(frames.camera)
+    estimated = [odometry.add(frames.stamp_ns(k), frames.left[k], frames.right[k]) for k in range(FRAMES)]
+    assert all(pose is not None for pose in estimated), "the odometry should be reliable on this sequence"
+    matcher, labeler = load_params(params_file)
+    session = LabelingSession(frames.camera, matcher, labeler)
+    expected = []
+    for k in range(FRAMES):
+        pose = estimated[k]
+        assert pose is not None
+        expected += session.process(frames.left[k], frames.right[k], pose, stamp=frames.stamp_ns(k) / 1e9).labelled
+
+    node = labeler_node(pose_source="odometry")
+    feeder = Feeder(ros_node)
+    recorder = Recorder(ros_node)
+    assert spin_nodes([node, ros_node], lambda: feeder.left.get_subscription_count() >= 1 and recorder.matched(), 10.0)
+    assert feeder.pose.get_subscription_count() == 0, "no pose topic with pose_source odometry"
+    for k in range(FRAMES):
+        stamp = frames.stamp_ns(k)
+        feeder.infos(frames.camera, stamp)
+        feeder.images(frames.left[k], frames.right[k], stamp)
+    done = spin_nodes([node, ros_node], lambda: recorder.count(topics.LABELS) >= FRAMES - DELAY, 20.0)
+    assert done, (recorder.stats, node.stats())
+    received = recorder.received[topics.LABELS]
+    assert [stamp_ns(m) for m in received] == [frames.stamp_ns(k) for k in range(FRAMES - DELAY)]
+    for k, msg in enumerate(received):
+        assert np.array_equal(image_to_numpy(msg), expected[k].labels), f"labels of frame {k} differ"
+    assert node.stats()["drops"].get("odometry_unreliable", 0) == 0
