@@ -118,6 +118,37 @@ def _cmd_odometry(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_train(args: argparse.Namespace) -> int:
+    from selfcontra_ros.confidence.commands import train_command
+    from selfcontra_ros.matching.base import MatcherParams
+
+    if len(args.data) != len(args.labels):
+        raise SelfContraError(f"give one --labels per --data ({len(args.data)} --data, {len(args.labels)} --labels)")
+    matcher = MatcherParams(algorithm=args.algorithm) if args.algorithm else None
+    summary = train_command(
+        list(zip(args.data, args.labels, strict=True)), args.features, Path(args.out), matcher=matcher, n_jobs=args.jobs
+    )
+    print(
+        f"trained {summary['feature_set']} forest on {summary['samples']} samples from {summary['frames']} frames "
+        f"in {summary['seconds']:.0f} s: {summary['model']}"
+    )
+    return 0
+
+
+def _cmd_evaluate_confidence(args: argparse.Namespace) -> int:
+    from selfcontra_ros.confidence.commands import evaluate_command
+    from selfcontra_ros.matching.base import MatcherParams
+
+    matcher = MatcherParams(algorithm=args.algorithm) if args.algorithm else None
+    results = evaluate_command(args.model, args.data, Path(args.out), matcher=matcher)
+    for name, record in results.items():
+        if name != "table":
+            mean = record["mean"]
+            print(f"{name}: AUSC {mean['ausc']:.4f}, optimal {mean['optimal']:.4f}, ratio {mean['ausc_ratio']:.3f}")
+    print(results["table"], end="")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Return the argument parser of the ``selfcontra`` command."""
     parser = argparse.ArgumentParser(
@@ -187,6 +218,43 @@ def build_parser() -> argparse.ArgumentParser:
     odo.add_argument("--namespace", default=None, help="stereo topic namespace of a bag (default: found in the bag)")
     odo.add_argument("--step", type=int, default=1, help="metrics: a first frame every STEP frames (KITTI devkit: 10)")
     odo.set_defaults(handler=_cmd_odometry)
+
+    train = sub.add_parser(
+        "train",
+        help="train a confidence forest on self-generated or ground-truth labels",
+        description="Each --data (sequence folder, KITTI stereo split or Middlebury scenes) pairs with the "
+        "--labels at the same position: a 'selfcontra label' output folder, or 'gt' for labels from the "
+        "ground-truth disparity (3 px). The model file (.npz) holds plain arrays only.",
+    )
+    train.add_argument("--features", required=True, choices=("ensemble", "gcp", "park"), help="feature set")
+    train.add_argument("--data", action="append", required=True, help="input data (repeatable)")
+    train.add_argument("--labels", action="append", required=True, help="label folder or 'gt' (repeatable)")
+    train.add_argument("--out", required=True, help="model file to write (.npz)")
+    train.add_argument(
+        "--algorithm",
+        choices=("sgbm", "bm", "census_sgm"),
+        default=None,
+        help="query algorithm for 'gt' labels (label folders bring their own; default sgbm)",
+    )
+    train.add_argument("--jobs", type=int, default=None, help="scikit-learn worker processes (default 1)")
+    train.set_defaults(handler=_cmd_train)
+
+    evaluate = sub.add_parser(
+        "evaluate-confidence",
+        help="sparsification curves, AUSC and AUSC/optimal of confidence models against ground truth",
+        description="Writes OUT/metrics.json (one model) or OUT/<model>/metrics.json (several), "
+        "OUT/sparsification.png, OUT/table.md (paper Table 1 layout) and OUT/summary.json.",
+    )
+    evaluate.add_argument("--model", action="append", required=True, help="model file or 'lrd' (repeatable)")
+    evaluate.add_argument("--data", required=True, help="frames with ground truth (sequence, KITTI stereo, Middlebury)")
+    evaluate.add_argument("--out", required=True, help="output folder")
+    evaluate.add_argument(
+        "--algorithm",
+        choices=("sgbm", "bm", "census_sgm"),
+        default=None,
+        help="query algorithm when only 'lrd' is evaluated (models bring their own; default sgbm)",
+    )
+    evaluate.set_defaults(handler=_cmd_evaluate_confidence)
     return parser
 
 

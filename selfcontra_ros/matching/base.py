@@ -36,7 +36,7 @@ __all__ = [
 ]
 
 #: Query algorithms known to :func:`make_matcher`.
-ALGORITHMS = ("sgbm", "bm", "external")
+ALGORITHMS = ("sgbm", "bm", "external", "census_sgm")
 
 #: StereoSGBM modes: ``sgbm`` (5 directions), ``hh`` (full 8-direction
 #: two-pass), ``sgbm_3way`` (3 directions, faster), ``hh4`` (4 directions).
@@ -248,6 +248,10 @@ def make_matcher(params: MatcherParams | None = None) -> Matcher:
         from selfcontra_ros.matching.external import ExternalMatcher
 
         return ExternalMatcher(params)
+    if params.algorithm == "census_sgm":
+        from selfcontra_ros.matching.census import CensusSGMMatcher
+
+        return CensusSGMMatcher(params)
     from selfcontra_ros.matching.opencv import OpenCVMatcher
 
     return OpenCVMatcher(params)

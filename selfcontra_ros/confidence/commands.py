@@ -1,0 +1,405 @@
+"""The work behind ``selfcontra train`` and ``selfcontra evaluate-confidence``.
+
+Data inputs (``--data``), detected from the folder's layout:
+
+* a KITTI odometry sequence (real or the package's synthetic one, see
+  :func:`~selfcontra_ros.datasets.kitti.open_sequence`); its frames carry
+  ground truth when the sequence has ``disp_0``;
+* a KITTI stereo 2012/2015 split (:func:`~selfcontra_ros.datasets.kitti.open_stereo_dataset`):
+  the reference frame ``NNNNNN_10`` of every scene, with ground truth;
+* a Middlebury 2003 scene folder, or a folder of them (:mod:`selfcontra_ros.datasets.middlebury`).
+
+Label inputs (``--labels``): an output folder of ``selfcontra label``
+(``labels/NNNNNN.png``, codes 0/1/2, plus ``metrics.json`` naming the query
+algorithm's parameters, which training then reuses), or ``gt``: labels from
+the ground-truth disparity (``|d - d_gt| <= 3 px`` positive, else negative).
+
+``evaluate-confidence`` writes into ``OUT``: ``metrics.json`` shaped
+``{"frames": [...], "mean": {"ausc", "optimal", "ausc_ratio", "bad_rate"}}``
+(with one model; with several, one ``OUT/<name>/metrics.json`` each),
+``sparsification.png`` (mean curves), ``table.md`` (paper Table 1 layout:
+rows = training source, columns = LRD, Ensemble, Park, GCP; cells = mean
+AUSC / optimal) and ``summary.json``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from selfcontra_ros.confidence import constants
+from selfcontra_ros.confidence.features import FeatureContext, compute_features, lrd_confidence
+from selfcontra_ros.confidence.forest import ForestModel, ModelError, load_model, save_model
+from selfcontra_ros.confidence.inputs import query_feature_input
+from selfcontra_ros.confidence.training import Samples, TrainParams, frame_samples, merge_samples, train
+from selfcontra_ros.datasets.kitti import StereoFrame, open_sequence, open_stereo_dataset
+from selfcontra_ros.datasets.middlebury import middlebury_scenes, read_middlebury
+from selfcontra_ros.errors import DatasetError, SelfContraError
+from selfcontra_ros.evaluation.metrics import DEFAULT_THRESHOLD_PX, ground_truth_labels
+from selfcontra_ros.evaluation.plots import plot_sparsification
+from selfcontra_ros.evaluation.sparsification import DEFAULT_STEP, sparsification
+from selfcontra_ros.matching.base import MatcherParams, make_matcher
+
+__all__ = [
+    "GT",
+    "LRD",
+    "collect_samples",
+    "confidence_table",
+    "evaluate_command",
+    "iter_frames",
+    "train_command",
+]
+
+#: ``--labels`` value selecting ground-truth labels.
+GT = "gt"
+#: ``--model`` value selecting the left-right disparity difference baseline.
+LRD = "lrd"
+
+_COLUMNS = (("LRD", LRD), ("Ensemble", "ensemble"), ("Park", "park"), ("GCP", "gcp"))
+
+
+# ------------------------------------------------------------------------------------------- inputs
+
+
+def iter_frames(data: Path | str) -> Iterator[StereoFrame]:
+    """Stereo frames of a sequence, a KITTI stereo split or Middlebury scenes (see the module docstring).
+
+    Raises:
+        DatasetError: when ``data`` is none of these.
+    """
+    path = Path(data)
+    scenes = middlebury_scenes(path)
+    if scenes:
+        for i, scene in enumerate(scenes):
+            yield read_middlebury(scene, index=i)
+        return
+    split = path / "training" if (path / "training").is_dir() else path
+    if (split / "calib_cam_to_cam").is_dir() or (split / "calib").is_dir():
+        for stereo_scene in open_stereo_dataset(split):
+            ref = stereo_scene.reference_index
+            if ref is not None:
+                yield stereo_scene[ref]
+        return
+    yield from open_sequence(path)
+
+
+@dataclass
+class _LabelSource:
+    """Where the training labels of one ``--data`` come from."""
+
+    folder: Path | None  # None: ground truth
+    matcher: MatcherParams | None
+
+    def labels(self, frame: StereoFrame, disparity: NDArray[np.float32]) -> NDArray[np.uint8] | None:
+        if self.folder is None:
+            if frame.gt_disparity is None:
+                return None
+            return ground_truth_labels(disparity, frame.gt_disparity, threshold=DEFAULT_THRESHOLD_PX)
+        path = self.folder / f"{frame.index:06d}.png"
+        if not path.is_file():
+            return None
+        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if image is None or image.dtype != np.uint8 or image.ndim != 2:
+            raise DatasetError(f"label image {path} must be a mono8 PNG with codes 0/1/2")
+        return np.asarray(image, dtype=np.uint8)
+
+
+def _label_source(labels: str | Path) -> _LabelSource:
+    if str(labels) == GT:
+        return _LabelSource(folder=None, matcher=None)
+    root = Path(labels)
+    folder = root / "labels" if (root / "labels").is_dir() else root
+    if not folder.is_dir():
+        raise DatasetError(f"label folder {root} does not exist (expected a 'selfcontra label' output or 'gt')")
+    matcher = None
+    for metrics in (root / "metrics.json", folder.parent / "metrics.json"):
+        if metrics.is_file():
+            params = json.loads(metrics.read_text()).get("params", {}).get("matcher")
+            if isinstance(params, dict):
+                matcher = MatcherParams(**params)
+            break
+    return _LabelSource(folder=folder, matcher=matcher)
+
+
+def _matcher_params(sources: Sequence[_LabelSource], matcher: MatcherParams | None) -> MatcherParams:
+    """The one query algorithm of a training run: the labels' own, else ``matcher``, else the default."""
+    found = {json.dumps(asdict(s.matcher), sort_keys=True) for s in sources if s.matcher is not None}
+    if len(found) > 1:
+        raise SelfContraError(
+            "the label folders were made with different query algorithms; train one model per algorithm"
+        )
+    if found:
+        params = MatcherParams(**json.loads(found.pop()))
+        if matcher is not None and matcher != params:
+            raise SelfContraError("the labels were made with other matcher parameters than the ones given")
+        return params
+    return matcher if matcher is not None else MatcherParams()
+
+
+# ------------------------------------------------------------------------------------------- training
+
+
+def collect_samples(
+    pairs: Sequence[tuple[str | Path, str | Path]],
+    feature_sets: Sequence[str],
+    *,
+    matcher: MatcherParams | None = None,
+    max_per_class: int = int(constants.TRAINING["max_per_class"]),
+    seed: int = int(constants.TRAINING["seed"]),
+) -> tuple[dict[str, Samples], MatcherParams]:
+    """Balanced training samples of several feature sets from ``(data, labels)`` pairs; matching runs once per frame.
+
+    Returns:
+        ``({feature set: samples}, query algorithm parameters)``.
+    """
+    sources = [_label_source(labels) for _, labels in pairs]
+    params = _matcher_params(sources, matcher)
+    query = make_matcher(params)
+    rng = np.random.default_rng(seed)
+    parts: dict[str, list[Samples]] = {name: [] for name in feature_sets}
+    for (data, _), source in zip(pairs, sources, strict=True):
+        for frame in iter_frames(data):
+            if source.folder is not None and not (source.folder / f"{frame.index:06d}.png").is_file():
+                continue
+            inputs = query_feature_input(query, frame.left, frame.right)
+            label_image = source.labels(frame, inputs.disparity)
+            if label_image is None:
+                continue
+            ctx = FeatureContext(inputs)
+            for name in feature_sets:
+                parts[name].append(frame_samples(name, ctx, label_image, rng, max_per_class=max_per_class))
+    if not any(parts.values()):
+        raise SelfContraError(f"no frame of {[str(d) for d, _ in pairs]} has labels to train on")
+    return {name: merge_samples(p) for name, p in parts.items()}, params
+
+
+def train_command(
+    pairs: Sequence[tuple[str | Path, str | Path]],
+    features: str,
+    out: str | Path,
+    *,
+    matcher: MatcherParams | None = None,
+    n_jobs: int | None = None,
+    max_per_class: int = int(constants.TRAINING["max_per_class"]),
+    forest: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Train a confidence forest of feature set ``features`` and write it to ``out`` (``.npz``).
+
+    Args:
+        pairs: ``(data, labels)`` pairs; ``labels`` a ``selfcontra label`` output folder or ``"gt"``.
+        features: ``ensemble``, ``gcp`` or ``park``.
+        out: model file (``.npz`` appended when missing).
+        matcher: query algorithm for ``gt`` labels (label folders bring their own).
+        n_jobs: scikit-learn workers.
+        max_per_class: per-image cap on samples of each class.
+        forest: overrides of the forest constants (tests use smaller forests).
+
+    Returns:
+        Summary: ``model`` path, ``samples``, ``frames``, ``positive_share``, ``seconds``.
+    """
+    if not pairs:
+        raise SelfContraError("train needs at least one --data/--labels pair")
+    start = time.perf_counter()
+    samples, params = collect_samples(pairs, [features], matcher=matcher, max_per_class=max_per_class)
+    kinds = {GT if str(labels) == GT else "self" for _, labels in pairs}
+    metadata = {
+        "matcher": asdict(params),
+        "label_source": kinds.pop() if len(kinds) == 1 else "mixed",
+        "sources": [{"data": str(d), "labels": str(lab)} for d, lab in pairs],
+    }
+    model = train(samples[features], TrainParams(forest=dict(forest or {}), n_jobs=n_jobs, metadata=metadata))
+    path = save_model(model, out)
+    return {
+        "model": str(path),
+        "feature_set": features,
+        "samples": int(samples[features].labels.size),
+        "frames": samples[features].frames,
+        "positive_share": float(samples[features].labels.mean()),
+        "seconds": time.perf_counter() - start,
+    }
+
+
+# ------------------------------------------------------------------------------------------- evaluation
+
+
+@dataclass
+class _Entry:
+    name: str
+    feature_set: str  # "lrd" for the baseline
+    source: str
+    model: ForestModel | None
+
+
+def _load_entries(models: Sequence[str | Path]) -> list[_Entry]:
+    entries: list[_Entry] = []
+    for spec in models:
+        if str(spec) == LRD:
+            entries.append(_Entry(LRD, LRD, "none", None))
+            continue
+        model = load_model(spec)
+        feature_set = str(model.metadata.get("feature_set", ""))
+        if int(model.metadata.get("constants_version", -1)) != constants.VERSION:
+            raise ModelError(f"model {spec} was trained with feature version {model.metadata.get('constants_version')}")
+        name = Path(spec).stem
+        if any(e.name == name for e in entries):
+            name = f"{name}_{len(entries)}"
+        entries.append(_Entry(name, feature_set, str(model.metadata.get("label_source", "?")), model))
+    return entries
+
+
+def _frame_figures(curve_result: Any) -> dict[str, Any]:
+    return {
+        "ausc": curve_result.ausc,
+        "optimal": curve_result.optimal,
+        "ausc_ratio": curve_result.ratio,
+        "bad_rate": curve_result.bad_rate_all,
+        "pixels": curve_result.pixels,
+        "density": [float(x) for x in curve_result.density],
+        "curve_bad_rate": [float(x) for x in curve_result.bad_rate],
+    }
+
+
+def _mean(frames: Sequence[Mapping[str, Any]]) -> dict[str, float]:
+    out: dict[str, float] = {}
+    for key in ("ausc", "optimal", "ausc_ratio", "bad_rate"):
+        values = [float(f[key]) for f in frames if f[key] is not None and math.isfinite(float(f[key]))]
+        out[key] = float(np.mean(values)) if values else math.nan
+    return out
+
+
+def _json_safe(value: Any) -> Any:
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_json_safe(v) for v in value]
+    return value
+
+
+def confidence_table(results: Sequence[Mapping[str, Any]]) -> str:
+    """Markdown table in the layout of the paper's Table 1: mean AUSC / optimal.
+
+    Args:
+        results: one mapping per evaluated model with ``feature_set``
+            (``lrd``, ``ensemble``, ``park``, ``gcp``), ``source`` (training
+            labels: ``gt``, ``self``, ...) and ``ausc_ratio``.
+
+    Returns:
+        Rows = training source (LRD, untrained, repeated in every row);
+        columns = LRD, Ensemble, Park, GCP; ``-`` where nothing was evaluated.
+    """
+    lrd = [r["ausc_ratio"] for r in results if r["feature_set"] == LRD]
+    sources = sorted({str(r["source"]) for r in results if r["feature_set"] != LRD}) or ["-"]
+    names = {GT: "ground truth", "self": "self-generated labels"}
+    lines = ["| training source | " + " | ".join(c for c, _ in _COLUMNS) + " |", "|---" * (len(_COLUMNS) + 1) + "|"]
+    for source in sources:
+        cells = []
+        for _, key in _COLUMNS:
+            values = (
+                lrd
+                if key == LRD
+                else [r["ausc_ratio"] for r in results if r["feature_set"] == key and r["source"] == source]
+            )
+            cells.append(f"{values[0]:.3f}" if values and values[0] is not None and math.isfinite(values[0]) else "-")
+        lines.append(f"| {names.get(source, source)} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def evaluate_command(
+    models: Sequence[str | Path] | str | Path,
+    data: str | Path,
+    out: str | Path,
+    *,
+    matcher: MatcherParams | None = None,
+    step: float = DEFAULT_STEP,
+) -> dict[str, Any]:
+    """Evaluate confidence models (or ``"lrd"``) by sparsification on frames with ground truth.
+
+    The query algorithm is the one the models were trained for (all must
+    agree); with only ``lrd``, ``matcher`` or the default. Matching and each
+    feature set are computed once per frame for all models.
+
+    Returns:
+        ``{model name: {"frames": [...], "mean": {...}}}`` plus ``"table"`` (the Markdown table).
+
+    Raises:
+        SelfContraError: models of different query algorithms, or no frame with ground truth.
+    """
+    specs = [models] if isinstance(models, (str, Path)) else list(models)
+    if not specs:
+        raise SelfContraError("evaluate-confidence needs at least one --model (a model file or 'lrd')")
+    entries = _load_entries(specs)
+    algorithms = {json.dumps(e.model.metadata.get("matcher"), sort_keys=True) for e in entries if e.model is not None}
+    if len(algorithms) > 1:
+        raise SelfContraError("the models were trained for different query algorithms; evaluate them separately")
+    params = matcher if matcher is not None else MatcherParams()
+    if algorithms:
+        stored: dict[str, Any] | None = json.loads(algorithms.pop())
+        if stored:
+            params = MatcherParams(**stored)
+    query = make_matcher(params)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    frames: dict[str, list[dict[str, Any]]] = {e.name: [] for e in entries}
+    for frame in iter_frames(data):
+        if frame.gt_disparity is None:
+            continue
+        ctx = FeatureContext(query_feature_input(query, frame.left, frame.right))
+        gt = frame.gt_disparity[ctx.rows, ctx.cols]
+        has_gt = np.isfinite(gt) & (gt > 0)
+        if not has_gt.any():
+            continue
+        correct = np.abs(ctx.d[has_gt] - gt[has_gt]) <= DEFAULT_THRESHOLD_PX
+        cache: dict[str, NDArray[np.float32]] = {}
+        for entry in entries:
+            if entry.model is None:
+                confidence = lrd_confidence(ctx)
+            else:
+                if entry.feature_set not in cache:
+                    cache[entry.feature_set] = compute_features(entry.feature_set, ctx)[0]
+                confidence = entry.model.predict(cache[entry.feature_set])
+            result = sparsification(confidence[has_gt], correct, step=step)
+            frames[entry.name].append({"frame": frame.name, **_frame_figures(result)})
+    if not any(frames.values()):
+        raise SelfContraError(f"no frame of {data} has ground-truth disparity to evaluate against")
+    results: dict[str, Any] = {}
+    table_rows: list[dict[str, Any]] = []
+    curves = {}
+    legend = {}
+    grid = np.arange(1.0, 0.0, -step)
+    for entry in entries:
+        mean = _mean(frames[entry.name])
+        record = {"frames": frames[entry.name], "mean": mean}
+        results[entry.name] = record
+        table_rows.append({"feature_set": entry.feature_set, "source": entry.source, **mean})
+        mean_curve = np.mean(
+            [np.interp(grid, f["density"][::-1], f["curve_bad_rate"][::-1]) for f in frames[entry.name]], axis=0
+        )
+        curves[entry.name] = (grid, mean_curve)
+        legend[entry.name] = f"AUSC/opt {mean['ausc_ratio']:.2f}"
+        target = out / "metrics.json" if len(entries) == 1 else out / entry.name / "metrics.json"
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.write_text(json.dumps(_json_safe(record), indent=1))
+    bad_rate = float(np.mean([f["bad_rate"] for f in next(iter(frames.values()))]))
+    plot_sparsification(curves, out / "sparsification.png", bad_rate=bad_rate, legend_extra=legend)
+    table = confidence_table(table_rows)
+    (out / "table.md").write_text(table)
+    summary = {
+        "data": str(data),
+        "matcher": asdict(params),
+        "models": {
+            e.name: {"feature_set": e.feature_set, "source": e.source, **results[e.name]["mean"]} for e in entries
+        },
+    }
+    (out / "summary.json").write_text(json.dumps(_json_safe(summary), indent=1))
+    return {**results, "table": table}
