@@ -154,3 +154,19 @@ def test_views_closer_than_alpha_min_give_no_support() -> None:
         assert np.all(result.vote_sum == 0)
         inside = _inside_right_image(disparities[int(result.key)])
         assert not np.any((result.labels == NEGATIVE) & inside)
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("stage2_min_angle_deg", -1.0),
+        ("stage2_min_angle_deg", 180.0),
+        ("stage2_min_query_support", -1),
+        ("stage2_min_query_support", 1.5),
+        ("stage2_negative_voters", "all"),
+        ("stage2_free_space_votes", "yes"),
+    ],
+)
+def test_invalid_stage2_options_are_rejected_by_name(field: str, value: object) -> None:
+    with pytest.raises(ValueError, match=field):
+        LabelerParams.from_dict({field: value})

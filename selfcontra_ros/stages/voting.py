@@ -14,6 +14,12 @@ Every reference view votes at most once per query pixel, in this priority:
 Only reference measurements with ``support_r >= 1`` and ``u_r < u_q`` vote;
 the splat z-buffer is built from the supported reference points only, so an
 unsupported point in front cannot hide a supported one.
+
+Options that deviate from the paper (all off by default, see
+:class:`selfcontra_ros.labeler.LabelerParams` for what they measured): a
+minimum observation angle for positive votes, a minimum Stage-1 support of the
+query pixel for a positive label, negative votes from less accurate references,
+and switching the free-space votes off.
 """
 
 from __future__ import annotations
@@ -27,9 +33,18 @@ from selfcontra_ros.geometry import StereoCamera
 from selfcontra_ros.labels import NEGATIVE, POSITIVE, UNKNOWN
 from selfcontra_ros.projection import lookup, splat_nearest, transform
 from selfcontra_ros.stages._common import within_tolerance
+from selfcontra_ros.stages.support import observation_angle_deg
 from selfcontra_ros.window import View, support_count
 
-__all__ = ["VotingResult", "consistency_voting"]
+__all__ = ["NEGATIVE_VOTERS", "VotingResult", "consistency_voting"]
+
+#: Which reference measurements may cast a negative vote (``negative_voters``):
+#: ``more_accurate`` - only those with ``u_r < u_q``, as for positive votes (paper);
+#: ``any`` - every supported one. The contradiction test already allows for the reference's own uncertainty
+#: under the ``sum`` tolerance; the paper's accuracy rule discards exactly the evidence against foreground
+#: fattening (a too-near query point beside an object edge is more accurate than the background behind it,
+#: whose views it would occlude), and keeps it out of the vote.
+NEGATIVE_VOTERS = ("more_accurate", "any")
 
 
 @dataclass(frozen=True)
@@ -57,6 +72,9 @@ def _reference_votes(
     sigma_max: float,
     sigma_px: float,
     tolerance: str,
+    min_angle_deg: float,
+    negatives_from_any: bool,
+    free_space: bool,
 ) -> NDArray[np.float64]:
     """The vote (0 for none) of one reference view for each valid query pixel ``q_index``."""
     votes = np.zeros(q_index.size)
@@ -69,8 +87,10 @@ def _reference_votes(
     found = lookup(x_q, ref_from_query, camera, ref.valid)
     r_index = found.ref_index
     u_r = ref.u[r_index].astype(np.float64)
-    eligible = found.ok & (ref_support[r_index] >= 1) & (u_r < u_q)
+    accurate = u_r < u_q
+    eligible = found.ok & (ref_support[r_index] >= 1) & (accurate | negatives_from_any)
     sel = np.flatnonzero(eligible)
+    accurate = accurate[sel]
     x_r = ref.points[r_index[sel]].astype(np.float64)
     close = within_tolerance(
         tolerance,
@@ -86,15 +106,28 @@ def _reference_votes(
     )
     in_front = np.linalg.norm(found.points_in_ref[sel], axis=-1) < np.linalg.norm(x_r, axis=-1)
     weight = ref_support[r_index[sel]].astype(np.float64) / np.sqrt(u_r[sel])
-    votes[sel] = np.where(close, weight, np.where(in_front, -weight, 0.0))
+    wide = np.ones(sel.size, dtype=bool)
+    if min_angle_deg > 0:
+        # A reference seen from nearly the query's direction repeats the query's systematic error (same
+        # image patches, same matching ambiguity), so its agreement is no evidence; its contradictions are.
+        centre_q = np.array([0.5 * camera.baseline, 0.0, 0.0])
+        centre_r = transform(query.pose_inv, ref.centre[None, :])[0]
+        wide = observation_angle_deg(x_q[sel], centre_r, centre_q) > min_angle_deg
+    positive = close & accurate
+    votes[sel] = np.where(positive, np.where(wide, weight, 0.0), np.where(~close & in_front, -weight, 0.0))
+    # A lookup that agrees has decided this reference's vote even when it does not count: no splat vote then.
+    decided = np.zeros(q_index.size, dtype=bool)
+    decided[sel] = positive | (~close & in_front)
 
+    if not free_space:
+        return votes
     # Splat: free-space violation where the lookup cast no vote.
     supported = np.flatnonzero(ref.valid & (ref_support >= 1))
     source = splat_nearest(ref.points[supported], supported, query_from_ref, camera)[q_index]
-    sel = np.flatnonzero((votes == 0) & (source >= 0))
+    sel = np.flatnonzero(~decided & (source >= 0))
     s_index = source[sel]
     u_s = ref.u[s_index].astype(np.float64)
-    more_accurate = u_s < u_q[sel]
+    more_accurate = (u_s < u_q[sel]) | negatives_from_any
     sel, s_index, u_s = sel[more_accurate], s_index[more_accurate], u_s[more_accurate]
     x_s = ref.points[s_index].astype(np.float64)
     x_s_in_q = transform(query_from_ref, x_s)
@@ -114,8 +147,29 @@ def consistency_voting(
     sigma_max: float,
     sigma_px: float,
     tolerance: str,
+    min_angle_deg: float = 0.0,
+    min_query_support: int = 0,
+    negative_voters: str = "more_accurate",
+    free_space_votes: bool = True,
 ) -> VotingResult:
-    """Stage 2 for one query view against the reference views ``refs``."""
+    """Stage 2 for one query view against the reference views ``refs``.
+
+    Args:
+        query: the view to label.
+        refs: the other views of the window.
+        camera: the stereo camera of all views.
+        sigma_max: tolerance, standard deviations.
+        sigma_px: image noise, pixels.
+        tolerance: reading of "within ``sigma_max``", one of :data:`~selfcontra_ros.stages._common.TOLERANCES`.
+        min_angle_deg: a reference casts a *positive* vote only where its observation angle to ``X_q``
+            exceeds this (degrees); 0 = the paper (every eligible reference). Negative votes are not limited.
+        min_query_support: a pixel is labelled positive only if its own Stage-1 support is at least this;
+            otherwise a positive sum leaves it unknown. 0 = the paper.
+        negative_voters: which supported reference measurements may vote *negative*, one of
+            :data:`NEGATIVE_VOTERS`: ``more_accurate`` (paper: ``u_r < u_q``, like positive votes) or ``any``.
+        free_space_votes: whether the splat casts free-space-violation votes (paper: yes). Without them only
+            the lookup votes (positive or occlusion).
+    """
     n = query.valid.size
     q_index = np.flatnonzero(query.valid)
     x_q = query.points[q_index].astype(np.float64)
@@ -123,7 +177,17 @@ def consistency_voting(
     voted = np.zeros(q_index.size, dtype=bool)
     for ref in refs:
         votes = _reference_votes(
-            query, ref, camera, q_index, x_q, sigma_max=sigma_max, sigma_px=sigma_px, tolerance=tolerance
+            query,
+            ref,
+            camera,
+            q_index,
+            x_q,
+            sigma_max=sigma_max,
+            sigma_px=sigma_px,
+            tolerance=tolerance,
+            min_angle_deg=min_angle_deg,
+            negatives_from_any=negative_voters == "any",
+            free_space=free_space_votes,
         )
         vote_sum += votes
         voted |= votes != 0
@@ -132,6 +196,9 @@ def consistency_voting(
     full_voted = np.zeros(n, dtype=bool)
     full_voted[q_index] = voted
     labels = np.full(n, UNKNOWN, dtype=np.uint8)
-    labels[full_voted & (full_sum > 0)] = POSITIVE
+    positive = full_voted & (full_sum > 0)
+    if min_query_support > 0:
+        positive &= support_count(query.support_bits) >= min_query_support
+    labels[positive] = POSITIVE
     labels[full_voted & (full_sum < 0)] = NEGATIVE
     return VotingResult(vote_sum=full_sum, voted=full_voted, labels=labels)

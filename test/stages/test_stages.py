@@ -6,6 +6,7 @@ import numpy as np
 
 from selfcontra_ros.geometry import StereoCamera
 from selfcontra_ros.labels import NEGATIVE, POSITIVE, UNKNOWN
+from selfcontra_ros.stages._common import within_tolerance
 from selfcontra_ros.stages.outliers import (
     augmented_depth,
     augmented_margin,
@@ -140,6 +141,106 @@ def test_sum_tolerance_accepts_more_than_query_tolerance() -> None:
         positives[mode] = int(np.sum(result.labels == POSITIVE))
     assert positives["sum"] > positives["query"]
     assert positives["sum"] > 0.5 * query.valid.sum()
+
+
+def test_references_under_the_minimum_angle_cast_no_positive_vote() -> None:
+    query = view_at(0.0, radius=9.0)
+    narrow = _supported(view_at(6.0, radius=6.0))  # about 6 degrees away from the query at the wall
+    wide = _supported(view_at(20.0, radius=6.0))
+    for refs, expected in (([narrow], UNKNOWN), ([wide], POSITIVE), ([narrow, wide], POSITIVE)):
+        result = consistency_voting(query, refs, CAMERA, tolerance="sum", min_angle_deg=10.0, **KW)
+        labels = result.labels.reshape(CAMERA.height, CAMERA.width)
+        assert np.all(labels[CENTRE] == expected)
+    # The paper's rule (0): the narrow reference votes positive.
+    result = consistency_voting(query, [narrow], CAMERA, tolerance="sum", **KW)
+    assert np.all(result.labels.reshape(CAMERA.height, CAMERA.width)[CENTRE] == POSITIVE)
+    # Where the narrow view is under the minimum angle, the sum of both views is the wide view's vote alone.
+    both = consistency_voting(query, [narrow, wide], CAMERA, tolerance="sum", min_angle_deg=10.0, **KW)
+    alone = consistency_voting(query, [wide], CAMERA, tolerance="sum", **KW)
+    shape = (CAMERA.height, CAMERA.width)
+    np.testing.assert_allclose(both.vote_sum.reshape(shape)[CENTRE], alone.vote_sum.reshape(shape)[CENTRE])
+
+
+def test_narrow_references_still_vote_negative() -> None:
+    refs = [_supported(view_at(6.0, radius=5.0))]
+    in_front = view_at(0.0, radius=9.0, scale=1.25)  # depth / 1.25: blocks the reference's view of the wall
+    result = consistency_voting(in_front, refs, CAMERA, tolerance="sum", min_angle_deg=10.0, **KW)
+    assert np.all(result.labels.reshape(CAMERA.height, CAMERA.width)[CENTRE] == NEGATIVE)
+
+
+def test_minimum_query_support_leaves_unsupported_positives_unknown() -> None:
+    query = view_at(0.0, radius=9.0)
+    refs = [_supported(view_at(20.0, radius=6.0))]
+    result = consistency_voting(query, refs, CAMERA, tolerance="sum", min_query_support=1, **KW)
+    assert not np.any(result.labels == POSITIVE)
+    assert np.all(result.vote_sum.reshape(CAMERA.height, CAMERA.width)[CENTRE] > 0)
+    query.support_bits[: query.valid.size // 2] = 1  # the upper half of the image supported
+    result = consistency_voting(query, refs, CAMERA, tolerance="sum", min_query_support=1, **KW)
+    labels = result.labels.reshape(CAMERA.height, CAMERA.width)
+    half = CAMERA.height // 2
+    assert np.all(labels[half - 10 : half, 70:90] == POSITIVE)
+    assert np.all(labels[half : half + 10, 70:90] == UNKNOWN)
+
+
+def test_less_accurate_references_vote_negative_only_when_allowed() -> None:
+    far_ref = [_supported(view_at(25.0, radius=10.0))]  # farther from the wall than the query: u_r > u_q
+    in_front = view_at(0.0, radius=9.0, scale=1.5)  # 3 m in front of the wall, beyond the reference's 2 sigma
+    paper = consistency_voting(in_front, far_ref, CAMERA, tolerance="sum", **KW)
+    assert not paper.voted.any()
+    anyone = consistency_voting(in_front, far_ref, CAMERA, tolerance="sum", negative_voters="any", **KW)
+    assert np.all(anyone.labels.reshape(CAMERA.height, CAMERA.width)[CENTRE] == NEGATIVE)
+    # Correct depth gets no negative vote, and positive votes still need a more accurate reference.
+    correct = view_at(0.0, radius=9.0)
+    result = consistency_voting(correct, far_ref, CAMERA, tolerance="sum", negative_voters="any", **KW)
+    assert not np.any(result.labels == NEGATIVE)
+    assert not np.any(result.voted.reshape(CAMERA.height, CAMERA.width)[CENTRE])
+
+
+def _brute_covariance(points: np.ndarray, sigma_px: float) -> np.ndarray:
+    """Covariances (n, 3, 3) from finite-difference Jacobians of the explicit stereo projection, numpy.linalg."""
+
+    def observe(p: np.ndarray) -> np.ndarray:
+        x, y, z = p[..., 0], p[..., 1], p[..., 2]
+        u_l = CAMERA.fx * x / z + CAMERA.cx
+        u_r = CAMERA.fx * (x - CAMERA.baseline) / z + CAMERA.cx
+        v = CAMERA.fy * y / z + CAMERA.cy
+        return np.stack([u_l, v, u_r, v], axis=-1)
+
+    step = 1e-6
+    jac = np.stack([(observe(points + step * e) - observe(points - step * e)) / (2 * step) for e in np.eye(3)], axis=-1)
+    return np.linalg.inv(np.einsum("nki,nkj->nij", jac, jac) / sigma_px**2)
+
+
+def test_sum_tolerance_matches_brute_force() -> None:
+    rng = np.random.default_rng(5)
+    query_pose, ref_pose = orbit_pose(0.0, 9.0), orbit_pose(23.0, 6.0)
+    ref_from_query = np.linalg.inv(ref_pose) @ query_pose
+    x_q = np.column_stack([rng.uniform(-2, 2, 500), rng.uniform(-1, 1, 500), rng.uniform(5, 12, 500)])
+    x_r_in_q = x_q + rng.normal(scale=0.3, size=(500, 3))
+    x_r = x_r_in_q @ ref_from_query[:3, :3].T + ref_from_query[:3, 3]
+    rotation_qr = ref_from_query[:3, :3].T
+    c_sum = _brute_covariance(x_q, 1.0) + rotation_qr @ _brute_covariance(x_r, 1.0) @ rotation_qr.T
+    delta = x_r_in_q - x_q
+    m2 = np.einsum("ni,nij,nj->n", delta, np.linalg.inv(c_sum), delta)
+    u_q = np.linalg.eigvalsh(_brute_covariance(x_q, 1.0))[:, -1]
+    u_r = np.linalg.eigvalsh(_brute_covariance(x_r, 1.0))[:, -1]
+    got = within_tolerance("sum", x_q, x_r, x_r_in_q, ref_from_query, u_q, u_r, CAMERA, 1.0, 2.0)
+    clear = np.abs(m2 - 4.0) > 1e-3 * 4.0  # leave out numerically borderline cases
+    assert np.sum(got & clear) > 50 and np.sum(~got & clear) > 50
+    np.testing.assert_array_equal(got[clear], m2[clear] <= 4.0)
+
+
+def test_free_space_votes_can_be_switched_off() -> None:
+    refs = [_supported(view_at(25.0, radius=5.0))]
+    behind = view_at(0.0, radius=6.0, scale=0.6)  # only the splat sees the contradiction (see above)
+    with_splat = consistency_voting(behind, refs, CAMERA, tolerance="sum", **KW)
+    without = consistency_voting(behind, refs, CAMERA, tolerance="sum", free_space_votes=False, **KW)
+    assert np.all(with_splat.labels.reshape(CAMERA.height, CAMERA.width)[CENTRE] == NEGATIVE)
+    assert not np.any(without.voted.reshape(CAMERA.height, CAMERA.width)[CENTRE])
+    # The lookup's votes are unchanged: an occluding query is still negative.
+    in_front = view_at(0.0, radius=9.0, scale=1.25)
+    result = consistency_voting(in_front, refs, CAMERA, tolerance="sum", free_space_votes=False, **KW)
+    assert np.all(result.labels.reshape(CAMERA.height, CAMERA.width)[CENTRE] == NEGATIVE)
 
 
 # Stage 3
