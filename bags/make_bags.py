@@ -26,29 +26,12 @@ from pathlib import Path
 
 from selfcontra_ros.bags.kitti2mcap import kitti_to_mcap
 from selfcontra_ros.bags.reader import open_bag
+from selfcontra_ros.cli import parse_frame_range, parse_size
 from selfcontra_ros.datasets.kitti import open_sequence
 from selfcontra_ros.datasets.synthetic import SCENES, write_sequence
 from selfcontra_ros.errors import SelfContraError
 
 DEFAULT_OUT = Path(__file__).resolve().parent
-
-
-def _size(text: str) -> tuple[int, int]:
-    try:
-        width, height = (int(part) for part in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT such as 620x188, got {text!r}") from None
-    if width < 16 or height < 16:
-        raise argparse.ArgumentTypeError(f"image size {text!r} is too small (at least 16x16)")
-    return width, height
-
-
-def _frames(text: str) -> slice:
-    try:
-        start, stop = (int(p) if p.strip() else None for p in text.split(":"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a frame range A:B, got {text!r}") from None
-    return slice(start, stop)
 
 
 def _describe(bag_path: Path) -> str:
@@ -72,10 +55,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="make_bags", description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="folder of the bags (default: bags/)")
     parser.add_argument("--kitti", type=Path, default=None, help="KITTI odometry root or sequence folder to convert")
-    parser.add_argument("--kitti-frames", type=_frames, default=None, help="frame range A:B of the KITTI sequence")
+    parser.add_argument(
+        "--kitti-frames", type=parse_frame_range, default=None, help="frame range A:B of the KITTI sequence"
+    )
     parser.add_argument("--sequence", default=None, help="KITTI sequence of a root holding several (e.g. 06)")
     parser.add_argument("--frames", type=int, default=30, help="frames per synthetic scene (default 30)")
-    parser.add_argument("--size", type=_size, default=(620, 188), help="synthetic image size WxH (default 620x188)")
+    parser.add_argument(
+        "--size", type=parse_size, default=(620, 188), help="synthetic image size WxH (default 620x188)"
+    )
     parser.add_argument("--seed", type=int, default=1, help="synthetic scene seed (default 1)")
     args = parser.parse_args(argv)
 

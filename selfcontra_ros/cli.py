@@ -15,10 +15,11 @@ from pathlib import Path
 
 from selfcontra_ros.errors import SelfContraError
 
-__all__ = ["build_parser", "main"]
+__all__ = ["build_parser", "main", "parse_frame_range", "parse_size"]
 
 
-def _size(text: str) -> tuple[int, int]:
+def parse_size(text: str) -> tuple[int, int]:
+    """Parse ``WIDTHxHEIGHT`` (an argparse type)."""
     try:
         width, height = (int(part) for part in text.lower().split("x"))
     except ValueError:
@@ -28,7 +29,7 @@ def _size(text: str) -> tuple[int, int]:
     return width, height
 
 
-def _frame_range(text: str) -> slice:
+def parse_frame_range(text: str) -> slice:
     """Parse ``A:B`` (either side optional) as a Python slice of frame indices."""
     parts = text.split(":")
     if len(parts) != 2:
@@ -72,11 +73,16 @@ def _cmd_label(args: argparse.Namespace) -> int:
             namespace=args.namespace,
             pose_topic=args.pose_topic,
             disparity_topic=args.disparity_topic,
+            model_out=Path(args.model_out) if args.model_out else None,
         )
         written = f"wrote the labelled bag {out} and {metrics_path(out)}"
+        if args.model_out:
+            written += f"; confidence model {args.model_out}"
     else:
         from selfcontra_ros.pipeline import label_sequence
 
+        if args.model_out:
+            raise SelfContraError("--model-out applies to bag input (online confidence runs in the bag labeler)")
         metrics = label_sequence(
             source, out, params_file=args.params, frames=args.frames, estimate_poses=args.estimate_poses
         )
@@ -161,7 +167,7 @@ def build_parser() -> argparse.ArgumentParser:
     synth.add_argument("--scene", choices=("street", "orbit"), default="street")
     synth.add_argument("--frames", type=int, default=30, help="number of stereo frames (default 30)")
     synth.add_argument("--seed", type=int, default=1, help="random seed; output is deterministic per seed")
-    synth.add_argument("--size", type=_size, default=(1226, 370), help="image size WxH (default 1226x370)")
+    synth.add_argument("--size", type=parse_size, default=(1226, 370), help="image size WxH (default 1226x370)")
     synth.add_argument("--out", required=True, help="output dataset root (sequences/00, poses/00.txt)")
     synth.set_defaults(handler=_cmd_synth)
 
@@ -174,7 +180,7 @@ def build_parser() -> argparse.ArgumentParser:
     label.add_argument("input", help="sequence folder (dataset root or sequences/XX) or a rosbag2 bag")
     label.add_argument("--out", required=True, help="output folder (sequence) or output bag (bag input)")
     label.add_argument("--params", default=None, help="parameter YAML (default: the package's config/labeler.yaml)")
-    label.add_argument("--frames", type=_frame_range, default=None, help="frame range A:B (sequences only)")
+    label.add_argument("--frames", type=parse_frame_range, default=None, help="frame range A:B (sequences only)")
     label.add_argument(
         "--estimate-poses",
         action="store_true",
@@ -186,12 +192,17 @@ def build_parser() -> argparse.ArgumentParser:
     bag_options.add_argument("--namespace", default=None, help="input namespace (default: found in the bag)")
     bag_options.add_argument("--pose-topic", default=None, help="PoseStamped or Odometry topic (default NS/pose)")
     bag_options.add_argument("--disparity-topic", default=None, help="external DisparityImage topic")
+    bag_options.add_argument(
+        "--model-out", default=None, help="save the confidence forest trained online on the labels (.npz)"
+    )
     label.set_defaults(handler=_cmd_label)
 
     k2m = sub.add_parser("kitti2mcap", help="convert a KITTI odometry sequence to a rosbag2 bag (MCAP storage)")
     k2m.add_argument("input", help="KITTI odometry root (with sequences/XX) or a sequence folder")
     k2m.add_argument("--out", required=True, help="bag folder to create (an existing path is never overwritten)")
-    k2m.add_argument("--frames", type=_frame_range, default=None, help="frame range A:B (Python slice; default all)")
+    k2m.add_argument(
+        "--frames", type=parse_frame_range, default=None, help="frame range A:B (Python slice; default all)"
+    )
     k2m.add_argument("--sequence", default=None, help="sequence to take from a root holding several (e.g. 06)")
     k2m.add_argument("--color", action="store_true", help="convert the colour pair image_2/image_3 (rgb8)")
     k2m.add_argument("--compress", choices=("zstd", "none"), default="zstd", help="MCAP chunk compression")
