@@ -165,6 +165,8 @@ def test_views_closer_than_alpha_min_give_no_support() -> None:
         ("stage2_min_query_support", 1.5),
         ("stage2_negative_voters", "all"),
         ("stage2_free_space_votes", "yes"),
+        ("stage2_free_space_neighbourhood", -1),
+        ("stage2_free_space_neighbourhood", 1.5),
     ],
 )
 def test_invalid_stage2_options_are_rejected_by_name(field: str, value: object) -> None:

@@ -15,11 +15,14 @@ Only reference measurements with ``support_r >= 1`` and ``u_r < u_q`` vote;
 the splat z-buffer is built from the supported reference points only, so an
 unsupported point in front cannot hide a supported one.
 
-Options that deviate from the paper (all off by default, see
+Options that deviate from the paper (see
 :class:`selfcontra_ros.labeler.LabelerParams` for what they measured): a
 minimum observation angle for positive votes, a minimum Stage-1 support of the
 query pixel for a positive label, negative votes from less accurate references,
-and switching the free-space votes off.
+switching the free-space votes off (all off by default), and the outline-aware
+free-space vote (``free_space_neighbourhood``; the labeler's default is 2 px,
+this function's 0 is the paper): a splatted point that agrees with a query
+measurement a pixel or two away casts no free-space vote.
 """
 
 from __future__ import annotations
@@ -75,6 +78,7 @@ def _reference_votes(
     min_angle_deg: float,
     negatives_from_any: bool,
     free_space: bool,
+    free_space_neighbourhood: int = 0,
 ) -> NDArray[np.float64]:
     """The vote (0 for none) of one reference view for each valid query pixel ``q_index``."""
     votes = np.zeros(q_index.size)
@@ -135,8 +139,84 @@ def _reference_votes(
         tolerance, x_q[sel], x_s, x_s_in_q, ref_from_query, u_q[sel], u_s, camera, sigma_px, sigma_max
     )
     violation = ~close & (x_s_in_q[:, 2] < x_q[sel, 2])
+    if free_space_neighbourhood > 0:
+        # A splatted point that agrees with a query measurement a pixel or two away lies on the query's own
+        # surface: an object outline seen from a slightly different direction (or rounded differently into
+        # pixels), not evidence that the query's ray passes through occupied space.
+        hit = np.flatnonzero(violation)
+        outline = _agrees_nearby(
+            query,
+            camera,
+            q_index[sel[hit]],
+            x_s[hit],
+            x_s_in_q[hit],
+            u_s[hit],
+            ref_from_query,
+            radius=free_space_neighbourhood,
+            tolerance=tolerance,
+            sigma_px=sigma_px,
+            sigma_max=sigma_max,
+        )
+        violation[hit[outline]] = False
     votes[sel[violation]] = -(ref_support[s_index[violation]].astype(np.float64) / np.sqrt(u_s[violation]))
     return votes
+
+
+def _agrees_nearby(
+    query: View,
+    camera: StereoCamera,
+    pixels: NDArray[np.int64],
+    x_s: NDArray[np.float64],
+    x_s_in_q: NDArray[np.float64],
+    u_s: NDArray[np.float64],
+    ref_from_query: NDArray[np.float64],
+    *,
+    radius: int,
+    tolerance: str,
+    sigma_px: float,
+    sigma_max: float,
+) -> NDArray[np.bool_]:
+    """Whether each splatted reference point agrees with a valid query measurement near its query pixel.
+
+    Args:
+        query: the query view.
+        camera: the stereo camera of both views.
+        pixels: flat query pixel each splatted point fell into (``(K,)``).
+        x_s: the splatted points in the reference left frame (``(K, 3)``, metres).
+        x_s_in_q: the same points in the query left frame (``(K, 3)``, metres).
+        u_s: their largest covariance eigenvalues (m^2).
+        ref_from_query: 4x4 transform from the query's to the reference's left frame.
+        radius: half side of the square neighbourhood, pixels (the pixel itself is not compared again).
+        tolerance: reading of "within ``sigma_max``", as for the votes.
+        sigma_px: image noise, pixels.
+        sigma_max: tolerance, standard deviations.
+    """
+    agrees = np.zeros(pixels.size, dtype=bool)
+    row, col = np.divmod(pixels, camera.width)
+    for dr in range(-radius, radius + 1):
+        for dc in range(-radius, radius + 1):
+            if dr == 0 and dc == 0:
+                continue  # the pixel itself was compared by the caller
+            r, c = row + dr, col + dc
+            inside = (r >= 0) & (r < camera.height) & (c >= 0) & (c < camera.width)
+            neighbour = np.where(inside, r * camera.width + c, 0)
+            test = np.flatnonzero(inside & query.valid[neighbour] & ~agrees)
+            if test.size == 0:
+                continue
+            near = neighbour[test]
+            agrees[test] = within_tolerance(
+                tolerance,
+                query.points[near].astype(np.float64),
+                x_s[test],
+                x_s_in_q[test],
+                ref_from_query,
+                query.u[near].astype(np.float64),
+                u_s[test],
+                camera,
+                sigma_px,
+                sigma_max,
+            )
+    return agrees
 
 
 def consistency_voting(
@@ -151,6 +231,7 @@ def consistency_voting(
     min_query_support: int = 0,
     negative_voters: str = "more_accurate",
     free_space_votes: bool = True,
+    free_space_neighbourhood: int = 0,
 ) -> VotingResult:
     """Stage 2 for one query view against the reference views ``refs``.
 
@@ -169,6 +250,9 @@ def consistency_voting(
             :data:`NEGATIVE_VOTERS`: ``more_accurate`` (paper: ``u_r < u_q``, like positive votes) or ``any``.
         free_space_votes: whether the splat casts free-space-violation votes (paper: yes). Without them only
             the lookup votes (positive or occlusion).
+        free_space_neighbourhood: radius in pixels; a splatted reference point that agrees (within the
+            tolerance) with a valid query measurement in the ``(2r+1)^2`` neighbourhood of its query pixel
+            casts no free-space vote. 0 = the paper (only the pixel itself is compared).
     """
     n = query.valid.size
     q_index = np.flatnonzero(query.valid)
@@ -188,6 +272,7 @@ def consistency_voting(
             min_angle_deg=min_angle_deg,
             negatives_from_any=negative_voters == "any",
             free_space=free_space_votes,
+            free_space_neighbourhood=free_space_neighbourhood,
         )
         vote_sum += votes
         voted |= votes != 0

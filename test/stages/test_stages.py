@@ -243,6 +243,46 @@ def test_free_space_votes_can_be_switched_off() -> None:
     assert np.all(result.labels.reshape(CAMERA.height, CAMERA.width)[CENTRE] == NEGATIVE)
 
 
+def _box_view(last_col: int) -> View:
+    """The wall from straight on, with a box at half the wall's depth over rows 50-69, columns 70..last_col."""
+    pose = orbit_pose(0.0)
+    disparity = wall_disparity(pose)
+    disparity[50:70, 70 : last_col + 1] *= 2.0
+    return make_view(CAMERA, disparity, pose, index=0, key=0, stamp=0.0, sigma_px=1.0)
+
+
+def test_splatted_outline_agreeing_with_a_neighbour_casts_no_free_space_vote() -> None:
+    query = _box_view(89)
+    # The reference, from the same pose, sees the box 5 px too wide (foreground fattening): its points at
+    # columns 90-94 are splatted in front of the query's correct wall there.
+    refs = [_supported(_box_view(94))]
+    shape = (CAMERA.height, CAMERA.width)
+    paper = consistency_voting(query, refs, CAMERA, tolerance="sum", **KW).labels.reshape(shape)
+    assert np.all(paper[50:70, 90:95] == NEGATIVE)
+    result = consistency_voting(query, refs, CAMERA, tolerance="sum", free_space_neighbourhood=1, **KW)
+    labels = result.labels.reshape(shape)
+    # Column 90: the splatted box point agrees with the query's box point at column 89, one pixel away.
+    assert not np.any(result.voted.reshape(shape)[50:70, 90])
+    # Columns 91-94: no query measurement within one pixel is on the box; the violation still counts.
+    assert np.all(labels[50:70, 91:95] == NEGATIVE)
+    # A larger neighbourhood accepts correspondingly more of the fattened outline.
+    wide = consistency_voting(query, refs, CAMERA, tolerance="sum", free_space_neighbourhood=2, **KW)
+    assert not np.any(wide.voted.reshape(shape)[50:70, 90:92])
+    assert np.all(wide.labels.reshape(shape)[50:70, 92:95] == NEGATIVE)
+    # Nowhere else does the option change a label.
+    outside = np.ones(shape, dtype=bool)
+    outside[50:70, 90:95] = False
+    np.testing.assert_array_equal(labels[outside], paper[outside])
+
+
+def test_free_space_neighbourhood_keeps_genuine_violations() -> None:
+    refs = [_supported(view_at(25.0, radius=5.0))]
+    behind = view_at(0.0, radius=6.0, scale=0.6)  # a whole surface behind the wall: no neighbour agrees
+    for radius in (1, 2):
+        result = consistency_voting(behind, refs, CAMERA, tolerance="sum", free_space_neighbourhood=radius, **KW)
+        assert np.all(result.labels.reshape(CAMERA.height, CAMERA.width)[CENTRE] == NEGATIVE)
+
+
 # Stage 3
 
 
