@@ -6,6 +6,7 @@ The file has the form ROS 2's ``--params-file`` reads::
       ros__parameters:
         matcher: {algorithm: sgbm, num_disparities: 128, ...}   # MatcherParams
         labeler: {window_size: ..., alpha_min_deg: 10.0, ...}   # LabelerParams
+        confidence: {feature_set: gcp, retrain_every: 10, ...}  # ConfidenceParams
 
 The ROS node flattens the nested sections to dotted parameter names
 (``matcher.block_size``); :func:`to_ros_parameters` and
@@ -24,6 +25,7 @@ from typing import Any
 
 import yaml
 
+from selfcontra_ros.confidence.online import ConfidenceParams
 from selfcontra_ros.errors import SelfContraError
 from selfcontra_ros.labeler import LabelerParams
 from selfcontra_ros.matching.base import MatcherParams
@@ -33,7 +35,9 @@ __all__ = [
     "DEFAULT_FILE",
     "NODE_NAMES",
     "SECTIONS",
+    "confidence_from_ros_parameters",
     "from_ros_parameters",
+    "load_confidence_params",
     "load_params",
     "params_to_dict",
     "read_parameter_file",
@@ -47,7 +51,7 @@ DEFAULT_FILE = "labeler.yaml"
 NODE_NAMES = ("labeler", "/**/labeler", "/**")
 
 #: Parameter sections and the dataclass each one fills.
-SECTIONS: dict[str, type] = {"matcher": MatcherParams, "labeler": LabelerParams}
+SECTIONS: dict[str, type] = {"matcher": MatcherParams, "labeler": LabelerParams, "confidence": ConfidenceParams}
 
 
 def read_parameter_file(path: str | Path) -> dict[str, dict[str, Any]]:
@@ -149,26 +153,71 @@ def load_params(path: str | Path | None = None) -> tuple[MatcherParams, LabelerP
     return _build(read_parameter_file(resolved), f"parameter file {resolved}")
 
 
-def params_to_dict(matcher: MatcherParams, labeler: LabelerParams) -> dict[str, dict[str, Any]]:
-    """Return ``{"matcher": {...}, "labeler": {...}}``, the nested form of the YAML file (JSON-friendly)."""
+def _build_confidence(sections: Mapping[str, Mapping[str, Any]], where: str) -> ConfidenceParams:
+    try:
+        values = _coerce(ConfidenceParams, sections.get("confidence", {}), f"{where}, section 'confidence'")
+        return ConfidenceParams(**values)
+    except SelfContraError as exc:
+        if where in str(exc):
+            raise
+        raise SelfContraError(f"{where}: {exc}") from exc
+    except (TypeError, ValueError) as exc:
+        raise SelfContraError(f"{where}: {exc}") from exc
+
+
+def load_confidence_params(path: str | Path | None = None) -> ConfidenceParams:
+    """Load the ``confidence`` section of a parameter file (defaults for keys it does not set).
+
+    Args:
+        path: the YAML file; ``None`` loads the package's ``config/labeler.yaml``.
+
+    Raises:
+        SelfContraError: as :func:`load_params`.
+    """
+    resolved = Path(path) if path is not None else config_file(DEFAULT_FILE)
+    return _build_confidence(read_parameter_file(resolved), f"parameter file {resolved}")
+
+
+def params_to_dict(
+    matcher: MatcherParams, labeler: LabelerParams, confidence: ConfidenceParams | None = None
+) -> dict[str, dict[str, Any]]:
+    """Return ``{"matcher": {...}, "labeler": {...}}`` (and ``"confidence"`` when given), the YAML's nested form."""
 
     def plain(params: Any) -> dict[str, Any]:
         return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(params).items()}
 
-    return {"matcher": plain(matcher), "labeler": plain(labeler)}
+    nested = {"matcher": plain(matcher), "labeler": plain(labeler)}
+    if confidence is not None:
+        nested["confidence"] = plain(confidence)
+    return nested
 
 
-def to_ros_parameters(matcher: MatcherParams, labeler: LabelerParams) -> dict[str, Any]:
-    """Return the ROS 2 parameter names (``section.key``) and values of the two dataclasses."""
-    nested = params_to_dict(matcher, labeler)
+def to_ros_parameters(
+    matcher: MatcherParams, labeler: LabelerParams, confidence: ConfidenceParams | None = None
+) -> dict[str, Any]:
+    """Return the ROS 2 parameter names (``section.key``) and values of the dataclasses."""
+    nested = params_to_dict(matcher, labeler, confidence)
     return {f"{section}.{key}": value for section, values in nested.items() for key, value in values.items()}
+
+
+def confidence_from_ros_parameters(values: Mapping[str, Any]) -> ConfidenceParams:
+    """Build :class:`ConfidenceParams` from the ``confidence.<key>`` names among ``values`` (others ignored).
+
+    Raises:
+        SelfContraError: on an unknown ``confidence.`` key or a value failing validation.
+    """
+    section = {
+        name.partition(".")[2]: value for name, value in values.items() if name.partition(".")[0] == "confidence"
+    }
+    return _build_confidence({"confidence": section}, "ROS parameters")
 
 
 def from_ros_parameters(values: Mapping[str, Any]) -> tuple[MatcherParams, LabelerParams]:
     """Build the dataclasses from dotted ROS 2 parameter names (``matcher.block_size``, ...).
 
-    Names outside the two sections are rejected, so a typo in a launch file
-    does not silently fall back to a default.
+    Names outside the sections are rejected, so a typo in a launch file
+    does not silently fall back to a default; ``confidence.*`` names are
+    accepted and left to :func:`confidence_from_ros_parameters`.
 
     Raises:
         SelfContraError: on an unknown name or a value failing validation.
@@ -177,6 +226,8 @@ def from_ros_parameters(values: Mapping[str, Any]) -> tuple[MatcherParams, Label
     for name, value in values.items():
         section, _, key = name.partition(".")
         if section not in SECTIONS or not key:
-            raise SelfContraError(f"ROS parameter {name!r}: expected 'matcher.<key>' or 'labeler.<key>'")
+            raise SelfContraError(
+                f"ROS parameter {name!r}: expected 'matcher.<key>', 'labeler.<key>' or 'confidence.<key>'"
+            )
         sections[section][key] = value
     return _build(sections, "ROS parameters")

@@ -8,8 +8,11 @@ from pathlib import Path
 import pytest
 import yaml
 
+from selfcontra_ros.confidence.online import ConfidenceParams
 from selfcontra_ros.config import (
+    confidence_from_ros_parameters,
     from_ros_parameters,
+    load_confidence_params,
     load_params,
     params_to_dict,
     read_parameter_file,
@@ -29,12 +32,30 @@ def _write(path: Path, parameters: object, node: str = "labeler") -> Path:
 def test_package_yaml_mirrors_dataclass_defaults() -> None:
     """One source of truth: every field is in the YAML with the dataclass default, of the same type (for ROS)."""
     sections = read_parameter_file(config_file("labeler.yaml"))
-    for name, cls in (("matcher", MatcherParams), ("labeler", LabelerParams)):
+    for name, cls in (("matcher", MatcherParams), ("labeler", LabelerParams), ("confidence", ConfidenceParams)):
         defaults = dataclasses.asdict(cls())
         assert sections[name] == defaults, name
         for key, value in defaults.items():
             assert type(sections[name][key]) is type(value), f"{name}.{key}"
     assert load_params(None) == (MatcherParams(), LabelerParams())
+    assert load_confidence_params(None) == ConfidenceParams()
+
+
+def test_confidence_section_round_trips_and_is_checked(tmp_path: Path) -> None:
+    confidence = ConfidenceParams(feature_set="ensemble", retrain_every=3, confidence_threshold=0.7, model_out="m.npz")
+    path = _write(tmp_path / "p.yaml", params_to_dict(MatcherParams(), LabelerParams(), confidence))
+    assert load_confidence_params(path) == confidence
+    assert load_params(path) == (MatcherParams(), LabelerParams())
+    flat = to_ros_parameters(MatcherParams(), LabelerParams(), confidence)
+    assert flat["confidence.retrain_every"] == 3
+    assert confidence_from_ros_parameters(flat) == confidence
+    assert from_ros_parameters(flat) == (MatcherParams(), LabelerParams())
+    _write(tmp_path / "bad.yaml", {"confidence": {"feature_set": "sift"}})
+    with pytest.raises(SelfContraError, match="feature_set"):
+        load_confidence_params(tmp_path / "bad.yaml")
+    _write(tmp_path / "typo.yaml", {"confidence": {"retrain_evry": 3}})
+    with pytest.raises(SelfContraError, match="retrain_evry"):
+        load_confidence_params(tmp_path / "typo.yaml")
 
 
 def test_round_trip_through_a_file(tmp_path: Path) -> None:

@@ -42,7 +42,18 @@ topic                  type                          content, header (stamp, fra
 ``NS/labels/color``    sensor_msgs/Image ``rgb8``    green / red / blue; as ``labels``
 ``NS/depth``           sensor_msgs/Image ``32FC1``   depth, metres, NaN invalid (REP 118); the frame's stamp
 ``NS/disparity``       stereo_msgs/DisparityImage    query disparity (stereo_image_proc conventions); as ``depth``
+``NS/confidence``      sensor_msgs/Image ``32FC1``   confidence in [0, 1] (LRD until the first forest); as ``depth``
+``NS/depth/filtered``  sensor_msgs/Image ``32FC1``   depth, NaN where confidence < threshold; as ``depth``
 =====================  ============================  =========================================================
+
+**Confidence** is the node's online confidence
+(:class:`~selfcontra_ros.confidence.online.OnlineConfidence`, section
+``confidence`` of the parameter file), run in the bag labeler's own thread so
+that a run is reproducible: each frame gets the confidence of the model
+current when it is matched; the labelled views fill the reservoir and the
+forest is retrained every ``retrain_every`` labelled views. ``model_out``
+(argument, else the file's ``confidence.model_out``) receives the last
+model, so a bag run yields a trained model. Not in external mode (no images).
 
 **Metrics** are written to ``<out_bag>/metrics.json`` (inside the bag folder,
 so one path holds a run's whole output; rosbag2 tools ignore the extra file),
@@ -50,7 +61,8 @@ with the schema of :func:`selfcontra_ros.pipeline.label_sequence` (frames
 keyed by their index in the bag; label metrics with ground truth, label
 shares without) plus ``output``, ``namespace``, ``status``
 (``complete`` / ``interrupted`` / ``failed``), ``dropped`` (reason -> count),
-``dropped_frames`` and ``sync`` (synchroniser counters).
+``dropped_frames``, ``sync`` (synchroniser counters), ``confidence_params``
+and ``confidence`` (:meth:`OnlineConfidence.stats`: source, samples, models trained).
 
 **Failures.** A missing, truncated or corrupt input bag raises
 :class:`~selfcontra_ros.bags.reader.BagError`; an existing output is never
@@ -68,6 +80,7 @@ parameter file and writes only ``out_bag``.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -87,7 +100,8 @@ from selfcontra_ros.bags.messages import MessageBuilder
 from selfcontra_ros.bags.reader import Bag, BagError, open_bag
 from selfcontra_ros.bags.sync import PoseBuffer, StampSynchronizer
 from selfcontra_ros.bags.writer import BagWriter
-from selfcontra_ros.config import load_params, params_to_dict
+from selfcontra_ros.confidence.online import OnlineConfidence
+from selfcontra_ros.config import load_confidence_params, load_params, params_to_dict
 from selfcontra_ros.errors import CalibrationError, ConversionError, PoseError, SelfContraError
 from selfcontra_ros.evaluation.metrics import mean_metrics
 from selfcontra_ros.geometry import StereoCamera
@@ -114,7 +128,14 @@ ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
 #: Message types accepted on the pose topic.
 POSE_TYPES = (topics.POSE_TYPE, ODOMETRY_TYPE)
 #: Output topics (relative) that the input bag must not hold already.
-_OUTPUTS = (topics.LABELS, topics.LABELS_COLOR, topics.DEPTH, topics.DISPARITY)
+_OUTPUTS = (
+    topics.LABELS,
+    topics.LABELS_COLOR,
+    topics.DEPTH,
+    topics.DISPARITY,
+    topics.CONFIDENCE,
+    topics.DEPTH_FILTERED,
+)
 #: Disparity resolution of OpenCV's block matchers (4 fractional bits), pixels.
 _OPENCV_DELTA_D = 1.0 / 16.0
 
@@ -216,8 +237,10 @@ class _BagLabeler:
         sync: StampSynchronizer,
         max_pose_gap: float,
         max_pose_extrapolation: float,
+        confidence: OnlineConfidence | None = None,
     ) -> None:
         self.bag, self.writer, self.ns = bag, writer, namespace
+        self.confidence = confidence
         self.matcher_params, self.labeler_params = matcher, labeler
         self.topic = {name: topics.bag_topic(name, namespace) for name in (*topics.INPUT_TOPICS, *_OUTPUTS)}
         self.pose_topic, self.disparity_topic = pose_topic, disparity_topic
@@ -325,7 +348,7 @@ class _BagLabeler:
             return
         if self.camera is None:
             self.camera = camera
-            self.session = LabelingSession(camera, self.matcher_params, self.labeler_params)
+            self.session = LabelingSession(camera, self.matcher_params, self.labeler_params, self.confidence)
         elif camera != self.camera:
             # The session's window holds views of the first calibration; a new one would mix cameras.
             self.drop("camera_info_changed", f"a {side} camera_info differing from the first calibration")
@@ -421,6 +444,16 @@ class _BagLabeler:
             return
         frame_id = str(frame.left.header.frame_id)
         self._write_frame(output.depth, output.disparity, camera, frame.stamp_ns, frame_id)
+        if output.confidence is not None and output.depth_filtered is not None:
+            stamp = frame.stamp_ns
+            self.writer.write(
+                self.topic[topics.CONFIDENCE], stamp, self.make.image(output.confidence, "32FC1", stamp, frame_id)
+            )
+            self.writer.write(
+                self.topic[topics.DEPTH_FILTERED],
+                stamp,
+                self.make.image(output.depth_filtered, "32FC1", stamp, frame_id),
+            )
         if output.skipped:
             self.skipped.append(index)
         else:
@@ -501,6 +534,7 @@ def label_bag(
     queue_size: int = 10,
     max_pose_gap: float = 0.5,
     max_pose_extrapolation: float = 0.05,
+    model_out: str | Path | None = None,
 ) -> dict[str, Any]:
     """Label a stereo bag and write the labels, depth and disparity into a new MCAP bag (module docstring).
 
@@ -518,6 +552,7 @@ def label_bag(
         queue_size: messages queued per synchronised topic.
         max_pose_gap: largest time between the two poses interpolated, seconds.
         max_pose_extrapolation: how far past the newest (or before the oldest) pose an image may be, seconds.
+        model_out: confidence model file written after every retraining; None: ``confidence.model_out``.
 
     Returns:
         The content of ``metrics.json`` (NaN, not ``null``, for undefined figures).
@@ -533,6 +568,9 @@ def label_bag(
     if out_bag.exists() or out_bag.is_symlink():
         raise BagError(f"output bag {out_bag} exists already; remove it or choose another path (not overwriting)")
     matcher_params, labeler_params = load_params(params_file)
+    confidence_params = load_confidence_params(params_file)
+    if model_out is not None:
+        confidence_params = dataclasses.replace(confidence_params, model_out=str(model_out))
     external = matcher_params.algorithm == "external"
     if external and disparity_topic is None:
         raise SelfContraError(
@@ -558,6 +596,7 @@ def label_bag(
         custom = {"selfcontra.labelled_from": str(in_bag.resolve()), "selfcontra.namespace": ns}
         status = "failed"
         run: _BagLabeler | None = None
+        confidence = None if external else OnlineConfidence(confidence_params, background=False, log=_LOG.info)
         try:
             with BagWriter(out_bag, compress="zstd", custom_data=custom) as writer:
                 run = _BagLabeler(
@@ -571,6 +610,7 @@ def label_bag(
                     sync=synchronizer,
                     max_pose_gap=max_pose_gap,
                     max_pose_extrapolation=max_pose_extrapolation,
+                    confidence=confidence,
                 )
                 run.run(progress)
             status = "complete"
@@ -579,6 +619,9 @@ def label_bag(
             raise
         finally:
             report = _report(in_bag, out_bag, ns, run, synchronizer, status, matcher_params, labeler_params, started)
+            # Beside "params", whose schema stays the sequence labeler's.
+            report["confidence_params"] = dataclasses.asdict(confidence_params)
+            report["confidence"] = confidence.stats() if confidence is not None else None
             if out_bag.is_dir():
                 metrics_path(out_bag).write_text(
                     json.dumps(json_safe(report), indent=2, allow_nan=False) + "\n", encoding="utf-8"

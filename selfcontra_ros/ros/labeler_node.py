@@ -34,6 +34,13 @@ stream reaching it (the stream stopped).
 * ``depth`` (32FC1 metres, NaN invalid, REP 118) and ``disparity``
   (stereo_msgs/DisparityImage; not in external mode, where it is the input), published from the subscription callback as
   soon as a frame is matched, with the frame's stamp;
+* ``confidence`` (32FC1 in [0, 1], 0 where the disparity is invalid) and
+  ``depth/filtered`` (32FC1 metres, NaN where the confidence is below
+  ``confidence.confidence_threshold``), for every frame with the frame's stamp
+  (not in external mode, which has no images): the LRD baseline
+  ``exp(-|d_L - d_R| / confidence.lrd_scale)``, published from the
+  subscription callback, until a forest exists; then the forest's
+  probability, computed by the confidence worker (see below);
 * ``labels`` (mono8: 0 unknown, 1 positive, 2 negative) and ``labels/color``
   (rgb8), published by the labeling worker ``label_delay`` views later, with
   the *labelled view's* stamp;
@@ -54,6 +61,20 @@ kept, so the labeler's window sees the stream thinned, not reordered. Memory
 is bounded everywhere: ``queue_size`` messages per synchronised topic, as many
 frames waiting for their pose, 1000 poses, ``label_queue_size`` views, and the
 labeler's own window.
+
+**Online confidence** (:class:`~selfcontra_ros.confidence.online.OnlineConfidence`,
+DESIGN section 4). The labelled views (frame and labels) go from the labeling
+worker to the confidence's trainer thread (at most 2 waiting; more are counted
+in ``~/stats`` ``confidence.views_dropped``), which adds balanced samples to
+the reservoir and retrains the forest every ``confidence.retrain_every``
+views, swapping it in atomically; the first swap logs "confidence: switched
+from LRD to the trained <set> forest (N samples)". Forest confidences need
+the census cost volume and the feature set (about 2.8 s a frame at KITTI size
+for ``gcp``, 30 ms at 320x96), so they are computed by a confidence worker
+thread fed through a queue of ``confidence_queue_size`` frames; a frame that
+finds it full gets the LRD confidence from the callback at once (counted as
+``confidence_lrd_fallback``), so every frame still gets its confidence.
+Forest confidences may therefore arrive after later frames' messages.
 
 **Robustness.** A message that cannot be used is dropped, counted under a
 reason in ``~/stats`` (``drops``) and logged at most every 5 s per reason:
@@ -96,6 +117,13 @@ poses and the session the same way (counted in ``time_jumps``).
 ``input_qos`` (``sensor_data``)
     ``sensor_data`` (best effort: serves best-effort and reliable publishers)
     or ``reliable`` (nothing lost between reliable nodes, e.g. the player).
+``confidence.*``
+    :class:`~selfcontra_ros.confidence.online.ConfidenceParams`: feature set,
+    threshold, LRD scale, ``retrain_every``, reservoir and forest sizes,
+    ``model_in`` (a model file to start from) and ``model_out`` (written after
+    every retraining), as in ``config/labeler.yaml``.
+``confidence_queue_size`` (2, 1..100)
+    frames waiting for a forest confidence.
 ``publish_debug`` (false), ``stats_period`` (1.0 s), ``flush_on_shutdown`` (false).
 
 **Shutdown.** SIGINT and SIGTERM stop the node cleanly (exit code 0). By
@@ -134,7 +162,14 @@ from rclpy.signals import SignalHandlerOptions
 
 from selfcontra_ros.bags import topics
 from selfcontra_ros.bags.sync import SYNC_MODES, Match, PoseBuffer, StampSynchronizer
-from selfcontra_ros.config import from_ros_parameters, params_to_dict, to_ros_parameters
+from selfcontra_ros.confidence.forest import ForestModel
+from selfcontra_ros.confidence.online import ConfidenceFrame, ConfidenceParams, OnlineConfidence, filter_depth
+from selfcontra_ros.config import (
+    confidence_from_ros_parameters,
+    from_ros_parameters,
+    params_to_dict,
+    to_ros_parameters,
+)
 from selfcontra_ros.errors import CalibrationError, ConversionError, PoseError, SelfContraError
 from selfcontra_ros.geometry import StereoCamera
 from selfcontra_ros.labeler import LabelerParams, LabelResult
@@ -184,6 +219,7 @@ DROP_REASONS = (
     "pose_gap",
     "pose_wait_overflow",
     "label_queue_full",
+    "confidence_lrd_fallback",
     "session_reset",
     "shutdown_discarded",
     "error",
@@ -227,6 +263,19 @@ class _View:
     key: ViewKey
     disparity: NDArray[np.float32]
     pose: NDArray[np.float64] | None = None
+    frame: ConfidenceFrame | None = None
+
+
+@dataclass
+class _ConfidenceJob:
+    """A matched frame waiting for its forest confidence."""
+
+    session: LabelingSession
+    frame: ConfidenceFrame
+    depth: NDArray[np.float32]
+    model: ForestModel
+    stamp_ns: int
+    frame_id: str
 
 
 def _descriptor(description: str, **kwargs: Any) -> ParameterDescriptor:
@@ -249,7 +298,17 @@ _CORE_INT_RANGES: dict[str, list[IntegerRange]] = {
     "labeler.window_size": _int_range(2, 1000),
     "labeler.label_delay": _int_range(0, 999),
     "labeler.min_positive_votes": _int_range(1, 1000),
+    "confidence.retrain_every": _int_range(1, 1_000_000),
+    "confidence.reservoir_per_class": _int_range(1, 10_000_000),
+    "confidence.samples_per_view": _int_range(1, 10_000_000),
+    "confidence.n_estimators": _int_range(1, 1000),
+    "confidence.max_depth": _int_range(1, 100),
+    "confidence.min_samples_leaf": _int_range(1, 1_000_000),
 }
+_CORE_FLOAT_RANGES: dict[str, list[FloatingPointRange]] = {
+    "confidence.confidence_threshold": _float_range(0.0, 1.0),
+}
+_SECTION_CLASSES = {"matcher": "MatcherParams", "labeler": "LabelerParams", "confidence": "ConfidenceParams"}
 
 
 def _pixels(msg: Any, side: str) -> NDArray[np.uint8]:
@@ -296,11 +355,15 @@ class LabelerNode(Node):
             "views_labelled": 0,
             "keyframe_skipped": 0,
             "labels_published": 0,
+            "confidence_published": 0,
+            "confidence_forest": 0,
             "camera_resets": 0,
             "time_jumps": 0,
         }
         self._warned: dict[str, float] = {}
         self._worker: threading.Thread | None = None
+        self._confidence_worker: threading.Thread | None = None
+        self._confidence: OnlineConfidence | None = None
         self._stop = threading.Event()
         try:
             self._declare_parameters()
@@ -311,16 +374,23 @@ class LabelerNode(Node):
             raise
         self._worker = threading.Thread(target=self._label_worker, name="selfcontra_labeling", daemon=True)
         self._worker.start()
+        if self._confidence_pub is not None:
+            self._confidence_worker = threading.Thread(
+                target=self._confidence_loop, name="selfcontra_confidence", daemon=True
+            )
+            self._confidence_worker.start()
 
     # ------------------------------------------------------------------ parameters
 
     def _declare_parameters(self) -> None:
-        for name, default in to_ros_parameters(MatcherParams(), LabelerParams()).items():
+        for name, default in to_ros_parameters(MatcherParams(), LabelerParams(), ConfidenceParams()).items():
             section, _, key = name.partition(".")
-            cls = "MatcherParams" if section == "matcher" else "LabelerParams"
+            cls = _SECTION_CLASSES[section]
             extra: dict[str, Any] = {}
             if name in _CORE_INT_RANGES:
                 extra["integer_range"] = _CORE_INT_RANGES[name]
+            if name in _CORE_FLOAT_RANGES:
+                extra["floating_point_range"] = _CORE_FLOAT_RANGES[name]
             if isinstance(default, float):
                 # A YAML "10" for a float parameter would otherwise be refused as an integer.
                 extra["dynamic_typing"] = True
@@ -388,6 +458,14 @@ class LabelerNode(Node):
                 floating_point_range=_float_range(0.0, 1.0e6),
             ),
         )
+        self.declare_parameter(
+            "confidence_queue_size",
+            2,
+            _descriptor(
+                "frames waiting for a forest confidence; a frame finding it full gets LRD (confidence_lrd_fallback)",
+                integer_range=_int_range(1, 100),
+            ),
+        )
         self.declare_parameter("publish_debug", False, _descriptor("publish debug/support, vote_sum, uncertainty"))
         self.declare_parameter(
             "input_qos",
@@ -409,10 +487,11 @@ class LabelerNode(Node):
         )
 
     def _read_parameters(self) -> None:
-        names = list(to_ros_parameters(MatcherParams(), LabelerParams()))
+        names = list(to_ros_parameters(MatcherParams(), LabelerParams(), ConfidenceParams()))
         values = {name: self.get_parameter(name).value for name in names}
         try:
             self.matcher_params, self.labeler_params = from_ros_parameters(values)
+            self.confidence_params = confidence_from_ros_parameters(values)
         except SelfContraError as exc:
             raise LabelerConfigError(str(exc)) from exc
         p = self.get_parameter
@@ -428,6 +507,7 @@ class LabelerNode(Node):
         self._input_qos = str(p("input_qos").value)
         self._stats_period = float(p("stats_period").value)
         self._flush_on_shutdown = bool(p("flush_on_shutdown").value)
+        self._confidence_queue_size = int(p("confidence_queue_size").value)
         for name, value, choices in (
             ("pose_source", self._pose_source, POSE_SOURCES),
             ("sync", self._sync_mode, SYNC_MODES),
@@ -438,6 +518,11 @@ class LabelerNode(Node):
         if self._sync_mode == "exact" and self._slop != 0.0:
             raise LabelerConfigError(f"parameter 'slop' is {self._slop:g} s with sync 'exact'; use sync:=approximate")
         self._external = self.matcher_params.algorithm == "external"
+        if not self._external:
+            try:
+                self._confidence = OnlineConfidence(self.confidence_params, background=True, log=self.get_logger().info)
+            except SelfContraError as exc:  # model_in unreadable or of another feature set
+                raise LabelerConfigError(f"confidence.model_in: {exc}") from exc
 
     # ------------------------------------------------------------------ topics
 
@@ -466,6 +551,13 @@ class LabelerNode(Node):
         self._disparity_pub: Publisher[Any] | None = (
             None if self._external else self.create_publisher(DisparityImage, topics.DISPARITY, qos_out)
         )
+        # Confidence needs images: none in external mode.
+        self._confidence_pub: Publisher[Any] | None = None
+        self._filtered_pub: Publisher[Any] | None = None
+        if self._confidence is not None:
+            self._confidence_pub = self.create_publisher(Image, topics.CONFIDENCE, qos_out)
+            self._filtered_pub = self.create_publisher(Image, topics.DEPTH_FILTERED, qos_out)
+        self._confidence_queue: queue.Queue[_ConfidenceJob | None] = queue.Queue(maxsize=self._confidence_queue_size)
         self._labels_pub: Publisher[Any] = self.create_publisher(Image, topics.LABELS, qos_out)
         self._color_pub: Publisher[Any] = self.create_publisher(Image, topics.LABELS_COLOR, qos_out)
         self._debug_pubs: dict[str, Publisher[Any]] = {}
@@ -542,7 +634,8 @@ class LabelerNode(Node):
             "sync_backwards": sync_backwards,
             "label_queue": self._label_queue.qsize(),
             "awaiting_pose": len(self._awaiting_pose),
-            "params": params_to_dict(self.matcher_params, self.labeler_params),
+            "params": params_to_dict(self.matcher_params, self.labeler_params, self.confidence_params),
+            "confidence": self._confidence.stats() if self._confidence is not None else None,
         }
 
     def publish_stats(self) -> None:
@@ -637,6 +730,7 @@ class LabelerNode(Node):
                     return
                 left = right = np.zeros((camera.height, camera.width), np.uint8)
                 disparity, depth = session.match(left, right, external_disparity=disparity_in)
+                frame = None
             else:
                 left, right = _pixels(items["left"], "left"), _pixels(items["right"], "right")
                 for side, image in (("left", left), ("right", right)):
@@ -650,7 +744,8 @@ class LabelerNode(Node):
                 if left.shape != right.shape:
                     self._drop("bad_image", f"left image {left.shape} and right image {right.shape} differ")
                     return
-                disparity, depth = session.match(left, right)
+                matched = session.match_frame(left, right)
+                disparity, depth, frame = matched.disparity, matched.depth, matched.frame
                 if self._odometry is not None and not self._odometry_pose(match.stamp_ns, left, right):
                     return
         except ConversionError as exc:
@@ -659,9 +754,11 @@ class LabelerNode(Node):
         self._count("frames")
         stamp = nanoseconds_to_stamp(match.stamp_ns)
         self._depth_pub.publish(numpy_to_image(depth, "32FC1", stamp=stamp, frame_id=frame_id))
+        if frame is not None:
+            self._confidence_for(session, frame, depth, match.stamp_ns, frame_id)
         p = self.matcher_params
         if self._disparity_pub is None:
-            self._after_match(session, match.stamp_ns, frame_id, disparity)
+            self._after_match(session, match.stamp_ns, frame_id, disparity, frame)
             return
         self._disparity_pub.publish(
             disparity_image(
@@ -673,19 +770,71 @@ class LabelerNode(Node):
                 max_disparity=float(p.min_disparity + p.num_disparities),
             )
         )
-        self._after_match(session, match.stamp_ns, frame_id, disparity)
+        self._after_match(session, match.stamp_ns, frame_id, disparity, frame)
 
     def _after_match(
-        self, session: LabelingSession, stamp_ns: int, frame_id: str, disparity: NDArray[np.float32]
+        self,
+        session: LabelingSession,
+        stamp_ns: int,
+        frame_id: str,
+        disparity: NDArray[np.float32],
+        frame: ConfidenceFrame | None = None,
     ) -> None:
         """Queue a matched view until its pose is known."""
         self._count("depth_published")
         self._newest_frame_ns = stamp_ns
-        self._awaiting_pose.append(_View(session, ViewKey(stamp_ns, frame_id), disparity))
+        self._awaiting_pose.append(_View(session, ViewKey(stamp_ns, frame_id), disparity, frame=frame))
         if len(self._awaiting_pose) > self._queue_size:
             dropped = self._awaiting_pose.pop(0)
             self._drop("pose_wait_overflow", f"frame at {dropped.key.stamp_ns} ns waited too long for its pose")
         self._release_views()
+
+    # ------------------------------------------------------------------ confidence
+
+    def _confidence_for(
+        self,
+        session: LabelingSession,
+        frame: ConfidenceFrame,
+        depth: NDArray[np.float32],
+        stamp_ns: int,
+        frame_id: str,
+    ) -> None:
+        """LRD confidence now, or the frame queued for the confidence worker once a forest exists."""
+        assert self._confidence is not None
+        model = self._confidence.model
+        if model is not None:
+            try:
+                self._confidence_queue.put_nowait(_ConfidenceJob(session, frame, depth, model, stamp_ns, frame_id))
+                return
+            except queue.Full:
+                self._drop(
+                    "confidence_lrd_fallback", f"forest confidence is behind; LRD for the frame at {stamp_ns} ns"
+                )
+        self._publish_confidence(self._confidence.lrd(frame), depth, stamp_ns, frame_id)
+
+    def _publish_confidence(
+        self, confidence: NDArray[np.float32], depth: NDArray[np.float32], stamp_ns: int, frame_id: str
+    ) -> None:
+        assert self._confidence is not None and self._confidence_pub is not None and self._filtered_pub is not None
+        stamp = nanoseconds_to_stamp(stamp_ns)
+        filtered = filter_depth(depth, confidence, self.confidence_params.confidence_threshold)
+        self._confidence_pub.publish(numpy_to_image(confidence, "32FC1", stamp=stamp, frame_id=frame_id))
+        self._filtered_pub.publish(numpy_to_image(filtered, "32FC1", stamp=stamp, frame_id=frame_id))
+        self._count("confidence_published")
+
+    def _confidence_loop(self) -> None:
+        """Forest confidences of the queued frames (runs on its own thread)."""
+        assert self._confidence is not None
+        while True:
+            job = self._confidence_queue.get()
+            if job is None:
+                return
+            try:
+                confidence = self._confidence.confidence(job.frame, job.model)
+                self._publish_confidence(confidence, job.depth, job.stamp_ns, job.frame_id)
+                self._count("confidence_forest")
+            except Exception as exc:
+                self._drop("error", f"confidence of the frame at {job.stamp_ns} ns: {type(exc).__name__}: {exc}")
 
     def _odometry_pose(self, stamp_ns: int, left: NDArray[np.uint8], right: NDArray[np.uint8]) -> bool:
         """``pose_source: odometry``: estimate the frame's pose into the pose buffer; False drops the frame.
@@ -717,7 +866,7 @@ class LabelerNode(Node):
         self._camera_key = key
         if self._session is not None and camera == self._camera:
             return self._session  # same calibration, e.g. only the stamps or the K of the infos differ
-        session = LabelingSession(camera, self.matcher_params, self.labeler_params)
+        session = LabelingSession(camera, self.matcher_params, self.labeler_params, self._confidence)
         if self._session is not None:
             self._count("camera_resets")
             self.get_logger().warning(
@@ -816,7 +965,9 @@ class LabelerNode(Node):
             self._drop("session_reset", f"view at {view.key.stamp_ns} ns belongs to the previous camera")
             return
         assert view.pose is not None
-        results, skipped = view.session.label(view.disparity, view.pose, stamp=view.key.stamp_ns / 1e9, key=view.key)
+        results, skipped = view.session.label(
+            view.disparity, view.pose, stamp=view.key.stamp_ns / 1e9, key=view.key, frame=view.frame
+        )
         self._count("views_labelled")
         if skipped:
             self._count("keyframe_skipped")
@@ -861,6 +1012,7 @@ class LabelerNode(Node):
         except queue.Full:
             self.get_logger().error("the labeling worker does not take views any more; exiting without it")
         worker.join(timeout=_JOIN_TIMEOUT_S)
+        self._stop_confidence()
         if self._flush_on_shutdown and not worker.is_alive():
             with self._lock:
                 session = self._session
@@ -874,6 +1026,20 @@ class LabelerNode(Node):
         if self._flush_on_shutdown:
             self._wait_for_acknowledgements()
         self.get_logger().info(f"stopped: {self._summary()}")
+
+    def _stop_confidence(self) -> None:
+        """Stop the confidence worker (dropping waiting frames) and the trainer thread."""
+        thread, self._confidence_worker = self._confidence_worker, None
+        if thread is not None:
+            while True:
+                try:
+                    self._confidence_queue.get_nowait()
+                except queue.Empty:
+                    break
+            self._confidence_queue.put(None)
+            thread.join(timeout=_JOIN_TIMEOUT_S)
+        if self._confidence is not None:
+            self._confidence.close(timeout=_JOIN_TIMEOUT_S)
 
     def _wait_for_acknowledgements(self, timeout_s: float = _ACK_TIMEOUT_S) -> None:
         """Give reliable subscribers up to ``timeout_s`` in all to acknowledge the last labels before the node goes."""

@@ -39,7 +39,8 @@ LEFT, RIGHT = topics.bag_topic(topics.LEFT_IMAGE), topics.bag_topic(topics.RIGHT
 POSE, LABELS = topics.bag_topic(topics.POSE), topics.bag_topic(topics.LABELS)
 LABELS_COLOR, DEPTH = topics.bag_topic(topics.LABELS_COLOR), topics.bag_topic(topics.DEPTH)
 DISPARITY = topics.bag_topic(topics.DISPARITY)
-OUTPUTS = {LABELS, LABELS_COLOR, DEPTH, DISPARITY}
+CONFIDENCE, DEPTH_FILTERED = topics.bag_topic(topics.CONFIDENCE), topics.bag_topic(topics.DEPTH_FILTERED)
+OUTPUTS = {LABELS, LABELS_COLOR, DEPTH, DISPARITY, CONFIDENCE, DEPTH_FILTERED}
 
 
 @pytest.fixture(scope="module")
@@ -175,6 +176,67 @@ def test_depth_and_disparity_are_the_query_algorithms(in_bag: Path, labelled: tu
         depth = image_to_numpy(depths[k].msg)
         assert depths[k].msg.encoding == "32FC1"
         np.testing.assert_allclose(depth, camera.fx * camera.baseline / disparity, rtol=1e-6)  # NaN where invalid
+
+
+def test_confidence_switches_from_lrd_to_the_trained_forest(in_bag: Path, tmp_path: Path) -> None:
+    """Every frame gets confidence and depth/filtered, as a session with an online confidence gives them."""
+    from selfcontra_ros.confidence.online import ConfidenceParams, OnlineConfidence
+    from selfcontra_ros.config import load_confidence_params
+    from selfcontra_ros.session import LabelingSession
+
+    params = tmp_path / "params.yaml"
+    params.write_text(
+        "labeler:\n  ros__parameters:\n    labeler: {window_size: 6, label_delay: 3}\n"
+        "    confidence: {retrain_every: 2, samples_per_view: 500, n_estimators: 3, max_depth: 8}\n"
+    )
+    model = tmp_path / "model.npz"
+    out = tmp_path / "labelled"
+    report = label_bag(in_bag, out, params_file=params, progress=False, model_out=model)
+    assert report["confidence"]["source"] == "gcp" and report["confidence"]["models_trained"] >= 2
+    assert model.is_file()
+    matcher, labeler = load_params(params)
+    confidence_params = load_confidence_params(params)
+    with open_bag(out) as bag:
+        infos = [next(bag.messages([topics.bag_topic(n)])).msg for n in (topics.LEFT_INFO, topics.RIGHT_INFO)]
+        camera = stereo_camera_from_camera_infos(*infos)
+        lefts = [image_to_numpy(m.msg) for m in bag.messages([LEFT])]
+        rights = [image_to_numpy(m.msg) for m in bag.messages([RIGHT])]
+        poses = [m.msg for m in bag.messages([POSE])]
+        confidences = [image_to_numpy(m.msg) for m in bag.messages([CONFIDENCE])]
+        filtered = [image_to_numpy(m.msg) for m in bag.messages([DEPTH_FILTERED])]
+        depths = [image_to_numpy(m.msg) for m in bag.messages([DEPTH])]
+    assert len(confidences) == len(filtered) == FRAMES
+    # Reference: the same session and online confidence, driven directly (reproducible: one thread, seeded).
+    from selfcontra_ros.bags.sync import PoseBuffer
+
+    buffer = PoseBuffer()
+    for msg in poses:
+        buffer.add_message(msg)
+    online = OnlineConfidence(confidence_params, background=False, log=lambda m: None)
+    session = LabelingSession(camera, matcher, labeler, online)
+    stamps = _left_stamps(in_bag)
+    sources = []
+    for k in range(FRAMES):
+        pose = buffer.lookup(stamps[k], max_gap_s=0.5, max_extrapolation_s=0.05).pose
+        assert pose is not None
+        expected = session.process(lefts[k], rights[k], pose, stamp=stamps[k] / 1e9, key=k)
+        assert expected.confidence is not None
+        np.testing.assert_allclose(confidences[k], expected.confidence, atol=1e-6, err_msg=f"frame {k}")
+        keep = confidences[k] >= confidence_params.confidence_threshold
+        np.testing.assert_array_equal(filtered[k][keep], depths[k][keep])
+        assert np.all(np.isnan(filtered[k][~keep]))
+        sources.append(expected.confidence_source)
+        lrd = online.lrd(session.match_frame(lefts[k], rights[k]).frame)
+        if expected.confidence_source == "lrd":
+            np.testing.assert_allclose(confidences[k], lrd, atol=1e-6)
+        else:
+            assert np.abs(confidences[k] - lrd).max() > 0.1, f"frame {k}: the forest equals LRD"
+    assert sources[0] == "lrd" and sources[-1] == "gcp", sources
+    session.flush()
+    # model_out holds the last model (trained at the flush): the same forest as the reference's.
+    saved = OnlineConfidence(ConfidenceParams(model_in=str(model)), background=False, log=lambda m: None)
+    frame = session.match_frame(lefts[0], rights[0]).frame
+    np.testing.assert_allclose(saved.confidence(frame), online.confidence(frame), atol=1e-6)
 
 
 # --------------------------------------------------------------------------- robustness
