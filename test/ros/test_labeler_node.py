@@ -282,6 +282,15 @@ def labeler_node(rclpy_context: Any, params_file: Path) -> Iterator[Callable[...
         node.destroy_node()
 
 
+def start_labeler(ros_process: Callable[..., Any], params_file: Path, *parameters: str) -> Any:
+    """The labeler as a subprocess with the params file, reliable inputs, a label queue of 16 and ``parameters``."""
+    extra = [arg for parameter in parameters for arg in ("-p", parameter)]
+    return ros_process(
+        [*NODE, "--params-file", str(params_file), "-p", "input_qos:=reliable", "-p", "label_queue_size:=16", *extra],
+        name="labeler",
+    )
+
+
 # --------------------------------------------------------------------------- tests
 
 
@@ -297,20 +306,7 @@ def test_node_process_labels_a_sequence_like_the_session(
 
     feeder = Feeder(ros_node)
     recorder = Recorder(ros_node)
-    node = ros_process(
-        [
-            *NODE,
-            "--params-file",
-            str(params_file),
-            "-p",
-            "input_qos:=reliable",
-            "-p",
-            "label_queue_size:=16",
-            "-p",
-            "publish_debug:=true",
-        ],
-        name="labeler",
-    )
+    node = start_labeler(ros_process, params_file, "publish_debug:=true")
     assert spin_until(ros_node, lambda: feeder.matched() and recorder.matched(), 20.0), node.stderr()
     for k in range(FRAMES):
         feeder.frame(frames, k, pose_first=k % 2 == 0)  # the pose before or after the images: both work
@@ -353,20 +349,7 @@ def test_sigterm_with_flush_on_shutdown_labels_the_waiting_views(
 ) -> None:
     feeder = Feeder(ros_node)
     recorder = Recorder(ros_node)
-    node = ros_process(
-        [
-            *NODE,
-            "--params-file",
-            str(params_file),
-            "-p",
-            "input_qos:=reliable",
-            "-p",
-            "label_queue_size:=16",
-            "-p",
-            "flush_on_shutdown:=true",
-        ],
-        name="labeler",
-    )
+    node = start_labeler(ros_process, params_file, "flush_on_shutdown:=true")
     assert spin_until(ros_node, lambda: feeder.matched() and recorder.matched(), 20.0), node.stderr()
     for k in range(FRAMES):
         feeder.frame(frames, k)
