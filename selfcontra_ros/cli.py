@@ -233,13 +233,21 @@ def build_parser() -> argparse.ArgumentParser:
     train = sub.add_parser(
         "train",
         help="train a confidence forest on self-generated or ground-truth labels",
-        description="Each --data (sequence folder, KITTI stereo split or Middlebury scenes) pairs with the "
-        "--labels at the same position: a 'selfcontra label' output folder, or 'gt' for labels from the "
-        "ground-truth disparity (3 px). The model file (.npz) holds plain arrays only.",
+        description="Each --data (sequence folder, KITTI stereo split, Middlebury scenes or bag) pairs with the "
+        "--labels at the same position: a 'selfcontra label' output folder, the output bag of 'selfcontra label BAG' "
+        "(matched to the --data bag's left images by header stamp; the labelled bag itself may be the --data), or "
+        "'gt' for labels from the ground-truth disparity (3 px). The model file (.npz) holds plain arrays only.",
     )
     train.add_argument("--features", required=True, choices=("ensemble", "gcp", "park"), help="feature set")
-    train.add_argument("--data", action="append", required=True, help="input data (repeatable)")
-    train.add_argument("--labels", action="append", required=True, help="label folder or 'gt' (repeatable)")
+    train.add_argument(
+        "--data",
+        action="append",
+        required=True,
+        help="sequence, KITTI stereo split, Middlebury scenes or bag (repeatable)",
+    )
+    train.add_argument(
+        "--labels", action="append", required=True, help="label folder, labelled bag or 'gt' (repeatable)"
+    )
     train.add_argument("--out", required=True, help="model file to write (.npz)")
     train.add_argument(
         "--algorithm",
@@ -257,7 +265,11 @@ def build_parser() -> argparse.ArgumentParser:
         "OUT/sparsification.png, OUT/table.md (paper Table 1 layout) and OUT/summary.json.",
     )
     evaluate.add_argument("--model", action="append", required=True, help="model file or 'lrd' (repeatable)")
-    evaluate.add_argument("--data", required=True, help="frames with ground truth (sequence, KITTI stereo, Middlebury)")
+    evaluate.add_argument(
+        "--data",
+        required=True,
+        help="frames with ground truth (sequence, KITTI stereo, Middlebury or bag)",
+    )
     evaluate.add_argument("--out", required=True, help="output folder")
     evaluate.add_argument(
         "--algorithm",

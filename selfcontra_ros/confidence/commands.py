@@ -7,12 +7,19 @@ Data inputs (``--data``), detected from the folder's layout:
   ground truth when the sequence has ``disp_0``;
 * a KITTI stereo 2012/2015 split (:func:`~selfcontra_ros.datasets.kitti.open_stereo_dataset`):
   the reference frame ``NNNNNN_10`` of every scene, with ground truth;
-* a Middlebury 2003 scene folder, or a folder of them (:mod:`selfcontra_ros.datasets.middlebury`).
+* a Middlebury 2003 scene folder, or a folder of them (:mod:`selfcontra_ros.datasets.middlebury`);
+* a rosbag2 bag (folder with ``metadata.yaml`` or ``.mcap`` file): its stereo
+  pairs, with ground truth from ``NS/ground_truth/disparity`` when it has it
+  (:mod:`selfcontra_ros.confidence.bag_frames`).
 
 Label inputs (``--labels``): an output folder of ``selfcontra label``
 (``labels/NNNNNN.png``, codes 0/1/2, plus ``metrics.json`` naming the query
-algorithm's parameters, which training then reuses), or ``gt``: labels from
-the ground-truth disparity (``|d - d_gt| <= 3 px`` positive, else negative).
+algorithm's parameters, which training then reuses); an output bag of
+``selfcontra label-bag`` (``NS/labels`` matched to the data bag's left images
+by header stamp, ``metrics.json`` inside the bag folder; the data bag may be
+the labelled bag itself); or ``gt``: labels from the ground-truth disparity
+(``|d - d_gt| <= 3 px`` positive, else negative). Frames without labels are
+skipped.
 
 ``evaluate-confidence`` writes into ``OUT``: ``metrics.json`` shaped
 ``{"frames": [...], "mean": {"ausc", "optimal", "ausc_ratio", "bad_rate"}}``
@@ -37,6 +44,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from selfcontra_ros.confidence import constants
+from selfcontra_ros.confidence.bag_frames import BagFrame, BagLabels, is_bag, iter_bag_frames, read_bag_labels
 from selfcontra_ros.confidence.features import FeatureContext, compute_features, lrd_confidence
 from selfcontra_ros.confidence.forest import ForestModel, ModelError, load_model, save_model
 from selfcontra_ros.confidence.inputs import query_feature_input
@@ -71,12 +79,16 @@ _COLUMNS = (("LRD", LRD), ("Ensemble", "ensemble"), ("Park", "park"), ("GCP", "g
 
 
 def iter_frames(data: Path | str) -> Iterator[StereoFrame]:
-    """Stereo frames of a sequence, a KITTI stereo split or Middlebury scenes (see the module docstring).
+    """Stereo frames of a sequence, a KITTI stereo split, Middlebury scenes or a bag (see the module docstring).
 
     Raises:
         DatasetError: when ``data`` is none of these.
+        BagError: a bag without stereo frames, or unreadable.
     """
     path = Path(data)
+    if is_bag(path):
+        yield from iter_bag_frames(path)
+        return
     scenes = middlebury_scenes(path)
     if scenes:
         for i, scene in enumerate(scenes):
@@ -94,12 +106,23 @@ def iter_frames(data: Path | str) -> Iterator[StereoFrame]:
 
 @dataclass
 class _LabelSource:
-    """Where the training labels of one ``--data`` come from."""
+    """Where the training labels of one ``--data`` come from: a label folder, a labelled bag or ground truth."""
 
-    folder: Path | None  # None: ground truth
+    folder: Path | None
+    bag: BagLabels | None
     matcher: MatcherParams | None
 
+    def has_labels(self, frame: StereoFrame) -> bool:
+        """Whether ``frame`` has labels, known before matching (ground truth: decided by :meth:`labels`)."""
+        if self.bag is not None:
+            return isinstance(frame, BagFrame) and frame.stamp_ns in self.bag
+        if self.folder is not None:
+            return (self.folder / f"{frame.index:06d}.png").is_file()
+        return True
+
     def labels(self, frame: StereoFrame, disparity: NDArray[np.float32]) -> NDArray[np.uint8] | None:
+        if self.bag is not None:
+            return self.bag.at(frame.stamp_ns) if isinstance(frame, BagFrame) else None
         if self.folder is None:
             if frame.gt_disparity is None:
                 return None
@@ -113,13 +136,26 @@ class _LabelSource:
         return np.asarray(image, dtype=np.uint8)
 
 
-def _label_source(labels: str | Path) -> _LabelSource:
+def _label_source(labels: str | Path, data: str | Path) -> _LabelSource:
     if str(labels) == GT:
-        return _LabelSource(folder=None, matcher=None)
+        return _LabelSource(folder=None, bag=None, matcher=None)
     root = Path(labels)
+    if is_bag(root):
+        if not is_bag(data):
+            raise SelfContraError(
+                f"labels {root} are a bag, matched to frames by header stamp: --data must be a bag too "
+                f"(the labelled bag itself will do), not {data}"
+            )
+        bag = read_bag_labels(root)
+        if not bag.images:
+            raise SelfContraError(f"labelled bag {root} holds no label image (its labeler labelled no view)")
+        return _LabelSource(folder=None, bag=bag, matcher=bag.matcher)
     folder = root / "labels" if (root / "labels").is_dir() else root
     if not folder.is_dir():
-        raise DatasetError(f"label folder {root} does not exist (expected a 'selfcontra label' output or 'gt')")
+        raise DatasetError(
+            f"label folder {root} does not exist (expected a 'selfcontra label' output folder, "
+            "a 'selfcontra label-bag' output bag or 'gt')"
+        )
     matcher = None
     for metrics in (root / "metrics.json", folder.parent / "metrics.json"):
         if metrics.is_file():
@@ -127,7 +163,7 @@ def _label_source(labels: str | Path) -> _LabelSource:
             if isinstance(params, dict):
                 matcher = MatcherParams(**params)
             break
-    return _LabelSource(folder=folder, matcher=matcher)
+    return _LabelSource(folder=folder, bag=None, matcher=matcher)
 
 
 def _matcher_params(sources: Sequence[_LabelSource], matcher: MatcherParams | None) -> MatcherParams:
@@ -160,16 +196,24 @@ def collect_samples(
 
     Returns:
         ``({feature set: samples}, query algorithm parameters)``.
+
+    Raises:
+        SelfContraError: no labelled frame at all, labels of a bag that match no frame of its data
+            (or with data that is not a bag), label sources of different query algorithms.
+        BagError: a bag that cannot be read or holds no stereo frames or no labels.
     """
-    sources = [_label_source(labels) for _, labels in pairs]
+    sources = [_label_source(labels, data) for data, labels in pairs]
     params = _matcher_params(sources, matcher)
     query = make_matcher(params)
     rng = np.random.default_rng(seed)
     parts: dict[str, list[Samples]] = {name: [] for name in feature_sets}
-    for (data, _), source in zip(pairs, sources, strict=True):
+    for (data, labels), source in zip(pairs, sources, strict=True):
+        frames = matched = 0
         for frame in iter_frames(data):
-            if source.folder is not None and not (source.folder / f"{frame.index:06d}.png").is_file():
+            frames += 1
+            if not source.has_labels(frame):
                 continue
+            matched += 1
             inputs = query_feature_input(query, frame.left, frame.right)
             label_image = source.labels(frame, inputs.disparity)
             if label_image is None:
@@ -177,6 +221,12 @@ def collect_samples(
             ctx = FeatureContext(inputs)
             for name in feature_sets:
                 parts[name].append(frame_samples(name, ctx, label_image, rng, max_per_class=max_per_class))
+        if source.bag is not None and not matched:
+            raise SelfContraError(
+                f"none of the {len(source.bag.images)} label images of {labels} (stamps {source.bag.stamp_range()}) "
+                f"matches the left image stamp of one of the {frames} frames of {data}; "
+                "were the labels made from this bag?"
+            )
     if not any(parts.values()):
         raise SelfContraError(f"no frame of {[str(d) for d, _ in pairs]} has labels to train on")
     return {name: merge_samples(p) for name, p in parts.items()}, params
@@ -195,10 +245,12 @@ def train_command(
     """Train a confidence forest of feature set ``features`` and write it to ``out`` (``.npz``).
 
     Args:
-        pairs: ``(data, labels)`` pairs; ``labels`` a ``selfcontra label`` output folder or ``"gt"``.
+        pairs: ``(data, labels)`` pairs; ``data`` a sequence, stereo split, Middlebury folder or bag;
+            ``labels`` a ``selfcontra label`` output folder, a ``selfcontra label-bag`` output bag
+            (``data`` then a bag: the labelled bag itself or the bag it was made from) or ``"gt"``.
         features: ``ensemble``, ``gcp`` or ``park``.
         out: model file (``.npz`` appended when missing).
-        matcher: query algorithm for ``gt`` labels (label folders bring their own).
+        matcher: query algorithm for ``gt`` labels (label folders and bags bring their own).
         n_jobs: scikit-learn workers.
         max_per_class: per-image cap on samples of each class.
         forest: overrides of the forest constants (tests use smaller forests).
