@@ -19,7 +19,8 @@ others keep their dataclass defaults.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -120,18 +121,25 @@ def _coerce(cls: type, values: Mapping[str, Any], where: str) -> dict[str, Any]:
     return out
 
 
-def _build(sections: Mapping[str, Mapping[str, Any]], where: str) -> tuple[MatcherParams, LabelerParams]:
+@contextmanager
+def _named_errors(where: str) -> Iterator[None]:
+    """Re-raise validation errors as SelfContraError naming ``where`` (the file or the ROS parameters)."""
     try:
-        matcher = MatcherParams(**_coerce(MatcherParams, sections.get("matcher", {}), f"{where}, section 'matcher'"))
-        labeler = LabelerParams.from_dict(
-            _coerce(LabelerParams, sections.get("labeler", {}), f"{where}, section 'labeler'")
-        )
+        yield
     except SelfContraError as exc:
         if where in str(exc):
             raise
         raise SelfContraError(f"{where}: {exc}") from exc
     except (TypeError, ValueError) as exc:
         raise SelfContraError(f"{where}: {exc}") from exc
+
+
+def _build(sections: Mapping[str, Mapping[str, Any]], where: str) -> tuple[MatcherParams, LabelerParams]:
+    with _named_errors(where):
+        matcher = MatcherParams(**_coerce(MatcherParams, sections.get("matcher", {}), f"{where}, section 'matcher'"))
+        labeler = LabelerParams.from_dict(
+            _coerce(LabelerParams, sections.get("labeler", {}), f"{where}, section 'labeler'")
+        )
     return matcher, labeler
 
 
@@ -154,15 +162,9 @@ def load_params(path: str | Path | None = None) -> tuple[MatcherParams, LabelerP
 
 
 def _build_confidence(sections: Mapping[str, Mapping[str, Any]], where: str) -> ConfidenceParams:
-    try:
+    with _named_errors(where):
         values = _coerce(ConfidenceParams, sections.get("confidence", {}), f"{where}, section 'confidence'")
         return ConfidenceParams(**values)
-    except SelfContraError as exc:
-        if where in str(exc):
-            raise
-        raise SelfContraError(f"{where}: {exc}") from exc
-    except (TypeError, ValueError) as exc:
-        raise SelfContraError(f"{where}: {exc}") from exc
 
 
 def load_confidence_params(path: str | Path | None = None) -> ConfidenceParams:
