@@ -24,6 +24,7 @@ setup(
     python_requires=">=3.10",
     install_requires=[
         "numpy>=1.24",
+        "numba>=0.59",
         "opencv-python-headless>=4.8",
         "scikit-learn>=1.3",
         "rosbags>=0.10",
