@@ -25,6 +25,7 @@ setup(
     install_requires=[
         "numpy>=1.24",
         "numba>=0.59",
+        "threadpoolctl>=3.1",
         "opencv-python-headless>=4.8",
         "scikit-learn>=1.3",
         "rosbags>=0.10",

@@ -7,6 +7,7 @@ The file has the form ROS 2's ``--params-file`` reads::
         matcher: {algorithm: sgbm, num_disparities: 128, ...}   # MatcherParams
         labeler: {window_size: ..., alpha_min_deg: 10.0, ...}   # LabelerParams
         confidence: {feature_set: gcp, retrain_every: 10, ...}  # ConfidenceParams
+        threads: 0          # node-level keys (NODE_PARAMETERS) sit beside the sections
 
 The ROS node flattens the nested sections to dotted parameter names
 (``matcher.block_size``); :func:`to_ros_parameters` and
@@ -35,12 +36,14 @@ from selfcontra_ros.resources import config_file
 __all__ = [
     "DEFAULT_FILE",
     "NODE_NAMES",
+    "NODE_PARAMETERS",
     "SECTIONS",
     "confidence_from_ros_parameters",
     "from_ros_parameters",
     "load_confidence_params",
     "load_params",
     "params_to_dict",
+    "read_node_parameters",
     "read_parameter_file",
     "to_ros_parameters",
 ]
@@ -54,22 +57,13 @@ NODE_NAMES = ("labeler", "/**/labeler", "/**")
 #: Parameter sections and the dataclass each one fills.
 SECTIONS: dict[str, type] = {"matcher": MatcherParams, "labeler": LabelerParams, "confidence": ConfidenceParams}
 
+#: Node-level parameters a file may set beside the sections, with their defaults (the node declares these):
+#: ``threads`` caps every thread pool (:func:`selfcontra_ros.threads.limit_threads`; 0 = all cores given).
+NODE_PARAMETERS: dict[str, int] = {"threads": 0}
 
-def read_parameter_file(path: str | Path) -> dict[str, dict[str, Any]]:
-    """Return the ``ros__parameters`` sections of a labeler parameter file.
 
-    Args:
-        path: YAML file of the form shown in the module docstring.
-
-    Returns:
-        Section name (``matcher``, ``labeler``) -> its key/value mapping;
-        absent sections are empty.
-
-    Raises:
-        SelfContraError: if the file is missing, not YAML, lacks the
-            ``<node>: ros__parameters:`` structure, or has an unknown section.
-    """
-    path = Path(path)
+def _load_document(path: Path) -> dict[str, Any]:
+    """The ``ros__parameters`` mapping of a parameter file (see the module docstring)."""
     try:
         document = yaml.safe_load(path.read_text(encoding="utf-8"))
     except OSError as exc:
@@ -87,12 +81,34 @@ def read_parameter_file(path: str | Path) -> dict[str, dict[str, Any]]:
     body = document[node]
     if not isinstance(body, dict) or not isinstance(body.get("ros__parameters"), dict):
         raise SelfContraError(f"parameter file {path}: '{node}' must hold a 'ros__parameters' mapping")
-    parameters = body["ros__parameters"]
+    parameters: dict[str, Any] = body["ros__parameters"]
+    return parameters
+
+
+def read_parameter_file(path: str | Path) -> dict[str, dict[str, Any]]:
+    """Return the ``ros__parameters`` sections of a labeler parameter file.
+
+    Args:
+        path: YAML file of the form shown in the module docstring.
+
+    Returns:
+        Section name (``matcher``, ``labeler``) -> its key/value mapping;
+        absent sections are empty.
+
+    Raises:
+        SelfContraError: if the file is missing, not YAML, lacks the
+            ``<node>: ros__parameters:`` structure, or has an unknown section.
+    """
+    path = Path(path)
+    parameters = _load_document(path)
     sections: dict[str, dict[str, Any]] = {name: {} for name in SECTIONS}
     for name, values in parameters.items():
+        if name in NODE_PARAMETERS:
+            continue  # read by read_node_parameters
         if name not in SECTIONS:
             raise SelfContraError(
-                f"parameter file {path}: unknown section {name!r} under ros__parameters; expected {sorted(SECTIONS)}"
+                f"parameter file {path}: unknown section {name!r} under ros__parameters; expected {sorted(SECTIONS)} "
+                f"or a node-level key {sorted(NODE_PARAMETERS)}"
             )
         if values is None:
             continue
@@ -100,6 +116,31 @@ def read_parameter_file(path: str | Path) -> dict[str, dict[str, Any]]:
             raise SelfContraError(f"parameter file {path}: section {name!r} must be a mapping, got {values!r}")
         sections[name] = dict(values)
     return sections
+
+
+def read_node_parameters(path: str | Path | None = None) -> dict[str, int]:
+    """Return the node-level keys of a parameter file (:data:`NODE_PARAMETERS`), defaults for those it lacks.
+
+    Args:
+        path: the YAML file; ``None`` reads the package's ``config/labeler.yaml``.
+
+    Returns:
+        Name -> value, e.g. ``{"threads": 0}`` (threads per pool, 0 = all cores).
+
+    Raises:
+        SelfContraError: the file cannot be read or a value is not an integer >= 0.
+    """
+    resolved = Path(path) if path is not None else config_file(DEFAULT_FILE)
+    parameters = _load_document(resolved)
+    values = dict(NODE_PARAMETERS)
+    for name in NODE_PARAMETERS:
+        if name not in parameters:
+            continue
+        value = parameters[name]
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise SelfContraError(f"parameter file {resolved}: {name!r} is {value!r}; expected an integer >= 0")
+        values[name] = value
+    return values
 
 
 def _coerce(cls: type, values: Mapping[str, Any], where: str) -> dict[str, Any]:

@@ -125,6 +125,12 @@ poses and the session the same way (counted in ``time_jumps``).
 ``confidence_queue_size`` (2, 1..100)
     frames waiting for a forest confidence.
 ``publish_debug`` (false), ``stats_period`` (1.0 s), ``flush_on_shutdown`` (false).
+``threads`` (0 = every core the process may run on)
+    cap on every thread pool (numba kernels, OpenCV's StereoSGBM, BLAS/OpenMP,
+    scikit-learn), applied at start by :func:`selfcontra_ros.threads.limit_threads`
+    and by each worker thread for its own numba/OpenMP count; a value above
+    the cores available is lowered to them. The cap applied is logged at
+    start and reported as ``threads`` in ``~/stats``.
 
 **Shutdown.** SIGINT and SIGTERM stop the node cleanly (exit code 0). By
 default the views still queued or waiting in the window are *not* labelled
@@ -165,6 +171,7 @@ from selfcontra_ros.bags.sync import SYNC_MODES, Match, PoseBuffer, StampSynchro
 from selfcontra_ros.confidence.forest import ForestModel
 from selfcontra_ros.confidence.online import ConfidenceFrame, ConfidenceParams, OnlineConfidence, filter_depth
 from selfcontra_ros.config import (
+    NODE_PARAMETERS,
     confidence_from_ros_parameters,
     from_ros_parameters,
     params_to_dict,
@@ -187,6 +194,7 @@ from selfcontra_ros.ros.conversions import (
 )
 from selfcontra_ros.ros.environment import prepare_ros_environment
 from selfcontra_ros.session import LabelingSession
+from selfcontra_ros.threads import apply_thread_limit, available_cores, limit_threads
 
 __all__ = ["DROP_REASONS", "LabelerConfigError", "LabelerNode", "ViewKey", "main"]
 
@@ -481,6 +489,14 @@ class LabelerNode(Node):
             _descriptor("seconds between ~/stats messages", floating_point_range=_float_range(0.01, 3600.0)),
         )
         self.declare_parameter(
+            "threads",
+            NODE_PARAMETERS["threads"],
+            _descriptor(
+                "threads per pool (numba, OpenCV, BLAS/OpenMP, scikit-learn); 0 = every core the process may use",
+                integer_range=_int_range(0, 4096),
+            ),
+        )
+        self.declare_parameter(
             "flush_on_shutdown",
             False,
             _descriptor("at shutdown, label the queued views and flush the window before exiting"),
@@ -508,6 +524,12 @@ class LabelerNode(Node):
         self._stats_period = float(p("stats_period").value)
         self._flush_on_shutdown = bool(p("flush_on_shutdown").value)
         self._confidence_queue_size = int(p("confidence_queue_size").value)
+        try:
+            # Before the first kernel runs: the cap must hold from the first frame on.
+            self._threads = limit_threads(int(p("threads").value))
+        except SelfContraError as exc:
+            raise LabelerConfigError(str(exc)) from exc
+        self.get_logger().info(f"threads: {self._threads} per pool (of {available_cores()} cores available)")
         for name, value, choices in (
             ("pose_source", self._pose_source, POSE_SOURCES),
             ("sync", self._sync_mode, SYNC_MODES),
@@ -633,6 +655,7 @@ class LabelerNode(Node):
             "sync_dropped": sync_dropped,
             "sync_backwards": sync_backwards,
             "label_queue": self._label_queue.qsize(),
+            "threads": self._threads,
             "awaiting_pose": len(self._awaiting_pose),
             "params": params_to_dict(self.matcher_params, self.labeler_params, self.confidence_params),
             "confidence": self._confidence.stats() if self._confidence is not None else None,
@@ -825,6 +848,7 @@ class LabelerNode(Node):
     def _confidence_loop(self) -> None:
         """Forest confidences of the queued frames (runs on its own thread)."""
         assert self._confidence is not None
+        apply_thread_limit()  # numba's and OpenMP's thread counts are per thread
         while True:
             job = self._confidence_queue.get()
             if job is None:
@@ -942,6 +966,7 @@ class LabelerNode(Node):
 
     def _label_worker(self) -> None:
         """Label the queued views in order and publish their labels (runs on its own thread)."""
+        apply_thread_limit()  # numba's and OpenMP's thread counts are per thread
         while True:
             view = self._label_queue.get()
             if view is None:
