@@ -43,5 +43,10 @@ DEMO_OUT ?= demo_out
 demo: $(STAMP)
 	$(BIN)/python -m selfcontra_ros.demo --out $(DEMO_OUT)
 
+# Where the labeler's time goes per stage at KITTI size, windows 10 and 20 (bench/profile_labeler.py).
+.PHONY: profile
+profile: $(STAMP)
+	$(BIN)/python bench/profile_labeler.py
+
 clean:
 	rm -rf $(VENV) build install log .pytest_cache .mypy_cache .ruff_cache $(DEMO_OUT)

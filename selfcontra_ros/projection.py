@@ -9,6 +9,10 @@ Both directions of DESIGN section 3, on flattened pixel arrays (pixel index
   keep, per query pixel, the one nearest to the query camera (a z-buffer);
 - :func:`splat_all`: the same projection keeping every candidate per pixel
   (Stage 3's augmented depth map).
+
+The per-point projection is one compiled kernel
+(:func:`selfcontra_ros.stages.kernels.project_scalar`), shared with the fused
+stage kernels.
 """
 
 from __future__ import annotations
@@ -19,12 +23,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from selfcontra_ros.geometry import StereoCamera
+from selfcontra_ros.stages import kernels
 
 __all__ = ["Lookup", "Splat", "lookup", "pixel_rays", "project_to_pixels", "splat_all", "splat_nearest"]
 
 FloatArray = NDArray[np.float64]
 IndexArray = NDArray[np.int64]
 BoolArray = NDArray[np.bool_]
+
+_IDENTITY = np.eye(4)
 
 
 def transform(pose: FloatArray, points: NDArray[np.floating]) -> FloatArray:
@@ -45,17 +52,29 @@ def pixel_rays(camera: StereoCamera) -> FloatArray:
 def project_to_pixels(points: FloatArray, camera: StereoCamera) -> tuple[IndexArray, BoolArray]:
     """Nearest pixel (flat index) of left-frame points (``(M, 3)``, metres) and whether it lies in the image.
 
-    Points at ``z <= 0`` or outside the image get ``ok = False`` (their index is 0).
+    Points at ``z <= 0``, not finite or outside the image get ``ok = False`` (their index is 0).
     """
-    z = points[:, 2]
-    ok = z > 0
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv_z = np.where(ok, 1.0 / z, 0.0)
-        col = np.rint(camera.fx * points[:, 0] * inv_z + camera.cx)
-        row = np.rint(camera.fy * points[:, 1] * inv_z + camera.cy)
-        ok &= (col >= 0) & (col <= camera.width - 1) & (row >= 0) & (row <= camera.height - 1)
-    index = np.where(ok, row * camera.width + col, 0).astype(np.int64)
-    return index, ok
+    _, index = _project(points, _IDENTITY, camera)
+    ok = index >= 0
+    return np.maximum(index, 0), ok
+
+
+def _project(points: NDArray[np.floating], pose: FloatArray, camera: StereoCamera) -> tuple[FloatArray, IndexArray]:
+    """Points moved by the 4x4 ``pose`` (float64) and their flat pixel index in ``camera`` (-1 where none)."""
+    p = np.asarray(points)
+    if p.dtype not in (np.float32, np.float64):
+        p = p.astype(np.float64)
+    moved, index = kernels.project_rows(
+        np.ascontiguousarray(p.reshape(-1, 3)),
+        np.ascontiguousarray(pose, dtype=np.float64),
+        camera.fx,
+        camera.fy,
+        camera.cx,
+        camera.cy,
+        camera.width,
+        camera.height,
+    )
+    return moved, index
 
 
 @dataclass(frozen=True)
@@ -84,8 +103,9 @@ def lookup(
         camera: the stereo camera of both views.
         ref_valid: flat validity mask of the reference measurements (``(H*W,)``).
     """
-    in_ref = transform(ref_from_query, query_points)
-    index, ok = project_to_pixels(in_ref, camera)
+    in_ref, index = _project(query_points, ref_from_query, camera)
+    ok = index >= 0
+    index = np.maximum(index, 0)
     ok &= ref_valid[index]
     return Lookup(ok=ok, ref_index=index, points_in_ref=in_ref)
 
@@ -113,9 +133,9 @@ def splat_all(
     ``ref_index`` gives each point's flat reference pixel; points in front of
     the query camera that fall inside its image are returned.
     """
-    in_query = transform(query_from_ref, ref_points)
-    index, ok = project_to_pixels(in_query, camera)
-    return Splat(query_index=index[ok], depth=in_query[ok, 2], source=ref_index[ok])
+    in_query, index = _project(ref_points, query_from_ref, camera)
+    ok = index >= 0
+    return Splat(query_index=index[ok], depth=in_query[ok, 2], source=np.asarray(ref_index, dtype=np.int64)[ok])
 
 
 def splat_nearest(
@@ -125,12 +145,18 @@ def splat_nearest(
 
     Returns a ``(H*W,)`` array, ``-1`` where no reference point falls.
     """
-    splat = splat_all(ref_points, ref_index, query_from_ref, camera)
-    n = camera.width * camera.height
-    zbuf = np.full(n, np.inf)
-    np.minimum.at(zbuf, splat.query_index, splat.depth)
-    nearest = splat.depth == zbuf[splat.query_index]
-    source = np.full(n, -1, dtype=np.int64)
-    # Exact depth ties are possible only for coincident points; either one is right.
-    source[splat.query_index[nearest]] = splat.source[nearest]
-    return source
+    p = np.asarray(ref_points)
+    if p.dtype not in (np.float32, np.float64):
+        p = p.astype(np.float64)
+    # Exact depth ties are possible only for coincident points; either one is right (the later one is kept).
+    return kernels.splat_nearest_kernel(
+        np.ascontiguousarray(p.reshape(-1, 3)),
+        np.ascontiguousarray(ref_index, dtype=np.int64),
+        np.ascontiguousarray(query_from_ref, dtype=np.float64),
+        camera.fx,
+        camera.fy,
+        camera.cx,
+        camera.cy,
+        camera.width,
+        camera.height,
+    )

@@ -11,6 +11,9 @@ along the most uncertain axis (mostly the viewing ray).
 Symmetric 3x3 matrices are stored packed as ``(..., 6)`` arrays in the order
 ``xx, xy, xz, yy, yz, zz`` so that every operation is a handful of elementwise
 numpy expressions over all pixels at once (no per-pixel linear algebra calls).
+The per-point formulas live once, as compiled scalar functions, in
+:mod:`selfcontra_ros.stages.kernels`; the functions here apply them to arrays
+of any leading shape.
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from selfcontra_ros.geometry import StereoCamera
+from selfcontra_ros.stages import kernels
 
 __all__ = [
     "covariance",
@@ -71,24 +75,11 @@ def information(points: ArrayLike, camera: StereoCamera, sigma_px: float) -> Flo
 
     Closed form of ``J^T J`` for the rows ``a(1, 0, -p)``, ``c(0, 1, -q)``,
     ``a(1, 0, -p')``, ``c(0, 1, -q)`` with ``a = fx/z``, ``c = fy/z``,
-    ``p = x/z``, ``p' = (x - b)/z``, ``q = y/z``.
+    ``p = x/z``, ``p' = (x - b)/z``, ``q = y/z``
+    (:func:`selfcontra_ros.stages.kernels.information_scalar`).
     """
-    pts = np.asarray(points, dtype=np.float64)
-    x, y, z = pts[..., 0], pts[..., 1], pts[..., 2]
-    a2 = (camera.fx / z) ** 2
-    c2 = (camera.fy / z) ** 2
-    p = x / z
-    p_r = (x - camera.baseline) / z
-    q = y / z
-    s = 1.0 / sigma_px**2
-    out = np.empty((*z.shape, 6))
-    out[..., 0] = 2.0 * a2 * s
-    out[..., 1] = 0.0
-    out[..., 2] = -a2 * (p + p_r) * s
-    out[..., 3] = 2.0 * c2 * s
-    out[..., 4] = -2.0 * c2 * q * s
-    out[..., 5] = (a2 * (p * p + p_r * p_r) + 2.0 * c2 * q * q) * s
-    return out
+    rows, shape = _rows(points, 3)
+    return kernels.information_rows(rows, camera.fx, camera.fy, camera.baseline, float(sigma_px)).reshape(*shape, 6)
 
 
 def covariance(points: ArrayLike, camera: StereoCamera, sigma_px: float) -> FloatArray:
@@ -101,12 +92,15 @@ def largest_covariance_eigenvalue(points: ArrayLike, camera: StereoCamera, sigma
 
     Computed as the largest eigenvalue of ``C`` rather than ``1/min eig(F)``:
     the largest eigenvalue of the trigonometric formula has no cancellation.
+    A point is invalid when not finite or at ``z <= 0``. Float32 points are
+    read as they are (widened per point), without a float64 copy.
     """
-    pts = np.asarray(points, dtype=np.float64)
-    ok = np.all(np.isfinite(pts), axis=-1) & (pts[..., 2] > 0)
-    safe = np.where(ok[..., None], pts, np.array([0.0, 0.0, 1.0]))
-    u = sym_eigvalsh(covariance(safe, camera, sigma_px))[..., 2]
-    return np.where(ok, u, np.nan)
+    p = np.asarray(points)
+    if p.dtype not in (np.float32, np.float64):
+        p = p.astype(np.float64)
+    shape = p.shape[:-1]
+    rows = np.ascontiguousarray(p.reshape(-1, 3))
+    return kernels.largest_eigenvalue_rows(rows, camera.fx, camera.fy, camera.baseline, float(sigma_px)).reshape(shape)
 
 
 def mahalanobis_sq(points: ArrayLike, delta: ArrayLike, camera: StereoCamera, sigma_px: float) -> FloatArray:
@@ -116,15 +110,11 @@ def mahalanobis_sq(points: ArrayLike, delta: ArrayLike, camera: StereoCamera, si
     Uses ``dX^T F dX = |J dX|^2 / sigma_px^2`` (the first-order reprojection
     change in pixels), so no matrix is formed or inverted.
     """
-    p = np.asarray(points, dtype=np.float64)
-    d = np.asarray(delta, dtype=np.float64)
-    x, y, z = p[..., 0], p[..., 1], p[..., 2]
-    dx, dy, dz = d[..., 0], d[..., 1], d[..., 2]
-    inv_z = 1.0 / z
-    e_ul = camera.fx * inv_z * (dx - x * inv_z * dz)
-    e_ur = camera.fx * inv_z * (dx - (x - camera.baseline) * inv_z * dz)
-    e_v = camera.fy * inv_z * (dy - y * inv_z * dz)
-    return (e_ul * e_ul + e_ur * e_ur + 2.0 * e_v * e_v) / sigma_px**2
+    p, d = np.broadcast_arrays(np.asarray(points, dtype=np.float64), np.asarray(delta, dtype=np.float64))
+    rows_p, shape = _rows(p, 3)
+    rows_d, _ = _rows(d, 3)
+    out = kernels.mahalanobis_sq_rows(rows_p, rows_d, camera.fx, camera.fy, camera.baseline, float(sigma_px))
+    return out.reshape(shape)
 
 
 def mahalanobis_sq_sum(
@@ -145,9 +135,17 @@ def mahalanobis_sq_sum(
         camera: the stereo camera of both views.
         sigma_px: image noise, pixels.
     """
-    c_a = covariance(points_a, camera, sigma_px)
-    c_b = rotate_sym(covariance(points_b, camera, sigma_px), rotation_ab)
-    return sym_quadratic_form(sym_inverse(c_a + c_b), delta_a)
+    a, b, d = np.broadcast_arrays(
+        np.asarray(points_a, dtype=np.float64), np.asarray(points_b, dtype=np.float64), np.asarray(delta_a, np.float64)
+    )
+    rows_a, shape = _rows(a, 3)
+    rows_b, _ = _rows(b, 3)
+    rows_d, _ = _rows(d, 3)
+    r = np.ascontiguousarray(rotation_ab, dtype=np.float64)
+    out = kernels.mahalanobis_sq_sum_rows(
+        rows_a, rows_b, r, rows_d, camera.fx, camera.fy, camera.baseline, float(sigma_px)
+    )
+    return out.reshape(shape)
 
 
 def mean_camera_centre(pose: ArrayLike, camera: StereoCamera) -> FloatArray:
@@ -173,54 +171,35 @@ def rotate_sym(s: ArrayLike, rotation: ArrayLike) -> FloatArray:
     ``rotation`` takes vectors of the matrices' frame into the new frame;
     Mahalanobis distances are unchanged when the offsets are rotated too.
     """
-    r = np.asarray(rotation, dtype=np.float64)
-    return sym_from_matrix(r @ sym_to_matrix(s) @ r.T)
+    rows, shape = _rows(s, 6)
+    r = np.ascontiguousarray(rotation, dtype=np.float64)
+    return kernels.rotate_sym_rows(rows, r).reshape(*shape, 6)
 
 
 def sym_inverse(s: ArrayLike) -> FloatArray:
-    """Inverse of packed symmetric 3x3 matrices by the adjugate (``(..., 6)``)."""
-    a = np.asarray(s, dtype=np.float64)
-    xx, xy, xz, yy, yz, zz = (a[..., i] for i in range(6))
-    c_xx = yy * zz - yz * yz
-    c_xy = xz * yz - xy * zz
-    c_xz = xy * yz - xz * yy
-    c_yy = xx * zz - xz * xz
-    c_yz = xy * xz - xx * yz
-    c_zz = xx * yy - xy * xy
-    det = xx * c_xx + xy * c_xy + xz * c_xz
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv_det = 1.0 / det
-    return np.stack([c_xx, c_xy, c_xz, c_yy, c_yz, c_zz], axis=-1) * inv_det[..., None]
+    """Inverse of packed symmetric 3x3 matrices by the adjugate (``(..., 6)``); inf/NaN where singular."""
+    rows, shape = _rows(s, 6)
+    return kernels.sym_inverse_rows(rows).reshape(*shape, 6)
 
 
 def sym_quadratic_form(s: ArrayLike, d: ArrayLike) -> FloatArray:
     """``d^T S d`` for packed symmetric ``S`` (``(..., 6)``) and vectors ``d`` (``(..., 3)``)."""
     a = np.asarray(s, dtype=np.float64)
     v = np.asarray(d, dtype=np.float64)
-    dx, dy, dz = v[..., 0], v[..., 1], v[..., 2]
-    return (
-        a[..., 0] * dx * dx
-        + a[..., 3] * dy * dy
-        + a[..., 5] * dz * dz
-        + 2.0 * (a[..., 1] * dx * dy + a[..., 2] * dx * dz + a[..., 4] * dy * dz)
-    )
+    shape = np.broadcast_shapes(a.shape[:-1], v.shape[:-1])
+    rows_s, _ = _rows(np.broadcast_to(a, (*shape, 6)), 6)
+    rows_d, _ = _rows(np.broadcast_to(v, (*shape, 3)), 3)
+    return kernels.quadratic_form_rows(rows_s, rows_d).reshape(shape)
 
 
 def sym_eigvalsh(s: ArrayLike) -> FloatArray:
     """Eigenvalues (ascending, ``(..., 3)``) of packed symmetric 3x3 matrices, trigonometric closed form."""
-    a = np.asarray(s, dtype=np.float64)
-    xx, xy, xz, yy, yz, zz = (a[..., i] for i in range(6))
-    q = (xx + yy + zz) / 3.0
-    p1 = xy * xy + xz * xz + yz * yz
-    dxx, dyy, dzz = xx - q, yy - q, zz - q
-    p2 = dxx * dxx + dyy * dyy + dzz * dzz + 2.0 * p1
-    p = np.sqrt(p2 / 6.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv_p = np.where(p > 0, 1.0 / p, 0.0)
-    bxx, byy, bzz, bxy, bxz, byz = dxx * inv_p, dyy * inv_p, dzz * inv_p, xy * inv_p, xz * inv_p, yz * inv_p
-    det_b = bxx * (byy * bzz - byz * byz) - bxy * (bxy * bzz - byz * bxz) + bxz * (bxy * byz - byy * bxz)
-    phi = np.arccos(np.clip(det_b / 2.0, -1.0, 1.0)) / 3.0
-    largest = q + 2.0 * p * np.cos(phi)
-    smallest = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
-    middle = 3.0 * q - largest - smallest
-    return np.stack([smallest, middle, largest], axis=-1)
+    rows, shape = _rows(s, 6)
+    return kernels.sym_eigvalsh_rows(rows).reshape(*shape, 3)
+
+
+def _rows(a: ArrayLike, width: int) -> tuple[FloatArray, tuple[int, ...]]:
+    """``a`` (``(..., width)``) as a contiguous float64 ``(M, width)`` array for the kernels, and its leading shape."""
+    arr = np.asarray(a, dtype=np.float64)
+    shape = arr.shape[:-1]
+    return np.ascontiguousarray(arr.reshape(-1, width)), shape

@@ -6,15 +6,50 @@ import numpy as np
 from numpy.typing import NDArray
 
 from selfcontra_ros.geometry import StereoCamera
-from selfcontra_ros.uncertainty import mahalanobis_sq, mahalanobis_sq_sum
+from selfcontra_ros.stages import kernels
 
-__all__ = ["TOLERANCES", "within_tolerance"]
+__all__ = ["TOLERANCES", "tolerance_code", "tolerance_sq", "within_tolerance"]
 
 #: Readings of "within sigma_max" (DESIGN section 3):
 #: ``query``   - Mahalanobis distance under the query point's covariance (paper, Stage 2);
 #: ``smaller`` - under the covariance of whichever point has the smaller ``u`` (paper, Stage 1);
 #: ``sum``     - ``dX^T (C_q + C_r)^-1 dX``, the test for two noisy measurements of one point.
 TOLERANCES = ("query", "smaller", "sum")
+
+_MODE_CODES = {"query": kernels.MODE_QUERY, "smaller": kernels.MODE_SMALLER, "sum": kernels.MODE_SUM}
+
+
+def tolerance_sq(
+    mode: str,
+    query_points: NDArray[np.float64],
+    ref_points: NDArray[np.float64],
+    ref_in_query: NDArray[np.float64],
+    ref_from_query: NDArray[np.float64],
+    u_query: NDArray[np.floating],
+    u_ref: NDArray[np.floating],
+    camera: StereoCamera,
+    sigma_px: float,
+) -> NDArray[np.float64]:
+    """Squared distance, in standard deviations, of each reference measurement from its query measurement.
+
+    Args: as :func:`within_tolerance`, without ``sigma_max``. A measurement is within ``s`` standard
+    deviations when the result is ``<= s**2``. The test itself is
+    :func:`selfcontra_ros.stages.kernels.tolerance_sq_scalar`, the same compiled function Stage 1's fused
+    kernel calls.
+    """
+    return kernels.tolerance_sq_rows(
+        tolerance_code(mode),
+        _rows3(query_points),
+        _rows3(ref_points),
+        _rows3(ref_in_query),
+        np.ascontiguousarray(ref_from_query, dtype=np.float64),
+        np.ascontiguousarray(u_query, dtype=np.float64).reshape(-1),
+        np.ascontiguousarray(u_ref, dtype=np.float64).reshape(-1),
+        camera.fx,
+        camera.fy,
+        camera.baseline,
+        float(sigma_px),
+    )
 
 
 def within_tolerance(
@@ -43,15 +78,17 @@ def within_tolerance(
         sigma_px: image noise, pixels.
         sigma_max: tolerance, in standard deviations.
     """
-    delta = ref_in_query - query_points
-    limit = sigma_max * sigma_max
-    if mode == "query":
-        return mahalanobis_sq(query_points, delta, camera, sigma_px) <= limit
-    rotation_rq = ref_from_query[:3, :3]
-    if mode == "smaller":
-        m_query = mahalanobis_sq(query_points, delta, camera, sigma_px)
-        m_ref = mahalanobis_sq(ref_points, delta @ rotation_rq.T, camera, sigma_px)
-        return np.where(u_query <= u_ref, m_query, m_ref) <= limit
-    if mode == "sum":
-        return mahalanobis_sq_sum(query_points, ref_points, rotation_rq.T, delta, camera, sigma_px) <= limit
-    raise ValueError(f"tolerance mode {mode!r}; expected one of {TOLERANCES}")
+    m2 = tolerance_sq(mode, query_points, ref_points, ref_in_query, ref_from_query, u_query, u_ref, camera, sigma_px)
+    return m2 <= sigma_max * sigma_max
+
+
+def tolerance_code(mode: str) -> int:
+    """The kernels' code (``kernels.MODE_*``) of a tolerance reading; raises ValueError naming the valid ones."""
+    try:
+        return _MODE_CODES[mode]
+    except KeyError:
+        raise ValueError(f"tolerance mode {mode!r}; expected one of {TOLERANCES}") from None
+
+
+def _rows3(points: NDArray[np.floating]) -> NDArray[np.float64]:
+    return np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)

@@ -18,14 +18,11 @@ The two Stage-3 tolerances are read here and only here (:data:`READINGS`).
 
 from __future__ import annotations
 
-from functools import lru_cache
-
 import numpy as np
 from numpy.typing import NDArray
 
 from selfcontra_ros.geometry import StereoCamera
-from selfcontra_ros.projection import lookup, pixel_rays, splat_all
-from selfcontra_ros.uncertainty import largest_covariance_eigenvalue
+from selfcontra_ros.stages import kernels
 from selfcontra_ros.window import View
 
 __all__ = [
@@ -44,6 +41,8 @@ __all__ = [
 #: (units of 1/metre; kept for reproduction, DESIGN section 3).
 READINGS = ("std", "paper")
 
+_READING_CODES = {"std": kernels.READING_STD, "paper": kernels.READING_PAPER}
+
 
 def candidate_tolerance(
     u_candidate: NDArray[np.floating], u_ref: NDArray[np.floating], sigma_max: float, reading: str
@@ -52,27 +51,36 @@ def candidate_tolerance(
 
     ``u_candidate`` is the candidate's uncertainty as seen from the query pair
     (the candidate is a depth hypothesis on the query ray), ``u_ref`` that of
-    the voting reference measurement, both m^2.
+    the voting reference measurement, both m^2. The formula of each reading is
+    :func:`selfcontra_ros.stages.kernels.candidate_tolerance_scalar`, which the
+    augmented-depth kernel calls too.
     """
-    if reading == "std":
-        return (np.sqrt(u_candidate) + np.sqrt(u_ref)) * sigma_max
-    if reading == "paper":
-        return (1.0 / np.sqrt(u_candidate) + 1.0 / np.sqrt(u_ref)) * sigma_max
-    raise ValueError(f"stage3 tolerance reading {reading!r}; expected one of {READINGS}")
+    u_c, u_r = np.broadcast_arrays(np.asarray(u_candidate, dtype=np.float64), np.asarray(u_ref, dtype=np.float64))
+    out = kernels.candidate_tolerance_rows(
+        np.ascontiguousarray(u_c).reshape(-1),
+        np.ascontiguousarray(u_r).reshape(-1),
+        float(sigma_max),
+        _reading(reading),
+    )
+    return out.reshape(u_c.shape)
 
 
 def augmented_margin(u_aug: NDArray[np.floating], sigma_max: float, reading: str) -> NDArray[np.float64]:
-    """How far (metres) the query depth must lie in front of the augmented depth to be negative."""
-    if reading == "std":
-        return sigma_max * np.sqrt(u_aug)
-    if reading == "paper":
-        return sigma_max / np.sqrt(u_aug)
-    raise ValueError(f"stage3 tolerance reading {reading!r}; expected one of {READINGS}")
+    """How far (metres) the query depth must lie in front of the augmented depth to be negative.
+
+    The formula of each reading is :func:`selfcontra_ros.stages.kernels.augmented_margin_scalar`.
+    """
+    u = np.asarray(u_aug, dtype=np.float64)
+    out = kernels.augmented_margin_rows(np.ascontiguousarray(u).reshape(-1), float(sigma_max), _reading(reading))
+    return out.reshape(u.shape)
 
 
-@lru_cache(maxsize=4)
-def _rays(camera: StereoCamera) -> NDArray[np.float64]:
-    return pixel_rays(camera)
+def _reading(reading: str) -> int:
+    """The kernels' code of a Stage-3 reading; raises ValueError naming the valid ones."""
+    try:
+        return _READING_CODES[reading]
+    except KeyError:
+        raise ValueError(f"stage3 tolerance reading {reading!r}; expected one of {READINGS}") from None
 
 
 def trivial_outliers(query: View, camera: StereoCamera) -> NDArray[np.bool_]:
@@ -84,33 +92,6 @@ def trivial_outliers(query: View, camera: StereoCamera) -> NDArray[np.bool_]:
     columns = np.tile(np.arange(camera.width, dtype=np.float32), camera.height)
     with np.errstate(invalid="ignore"):
         return query.valid & (columns - query.disparity.ravel() < 0)
-
-
-def _relaxed_votes(
-    points: NDArray[np.float64],
-    u_candidate: NDArray[np.float64],
-    query: View,
-    voters: list[View],
-    camera: StereoCamera,
-    sigma_max: float,
-    reading: str,
-) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-    """(number of +1 votes, vote sum) of every voter for candidate points (query left frame, metres)."""
-    plus = np.zeros(points.shape[0], dtype=np.int64)
-    total = np.zeros(points.shape[0], dtype=np.int64)
-    for view in voters:
-        found = lookup(points, view.from_view(query), camera, view.valid)
-        sel = np.flatnonzero(found.ok)
-        r_index = found.ref_index[sel]
-        range_candidate = np.linalg.norm(found.points_in_ref[sel], axis=-1)
-        range_ref = np.linalg.norm(view.points[r_index].astype(np.float64), axis=-1)
-        tol = candidate_tolerance(u_candidate[sel], view.u[r_index].astype(np.float64), sigma_max, reading)
-        agree = np.abs(range_candidate - range_ref) <= tol
-        # In front of the reference surface: the candidate would block that view's line of sight.
-        blocks = ~agree & (range_candidate < range_ref)
-        plus[sel] += agree
-        total[sel] += agree.astype(np.int64) - blocks
-    return plus, total
 
 
 def augmented_depth(
@@ -126,45 +107,36 @@ def augmented_depth(
 ) -> NDArray[np.float64]:
     """Augmented depth (metres, flat ``(H*W,)``, NaN where no valid candidate) for the ``pending`` query pixels.
 
-    Candidates are processed in rounds by their rank in depth order per
-    pixel; a pixel leaves the rounds at its first valid candidate, so the
-    nearest valid one wins and far candidates of settled pixels are never voted on.
+    Candidates of a pixel are all reference points splatting into it
+    (:func:`~selfcontra_ros.stages.kernels.splat_into_pending`), nearest
+    first; the first one validated by the relaxed vote of every reference
+    (:func:`~selfcontra_ros.stages.kernels.candidate_is_valid`) wins, and
+    farther candidates of that pixel are never voted on. The nearest
+    candidate is voted on first for all pixels; only pixels where it fails
+    sort their other candidates.
     """
-    n = query.valid.size
-    z_aug = np.full(n, np.nan)
-    pix_parts, depth_parts = [], []
-    for ref in refs:
-        src = np.flatnonzero(ref.valid)
-        splat = splat_all(ref.points[src], src, query.from_view(ref), camera)
-        keep = pending[splat.query_index]
-        pix_parts.append(splat.query_index[keep])
-        depth_parts.append(splat.depth[keep])
-    if not pix_parts:
-        return z_aug
-    pix = np.concatenate(pix_parts)
-    depth = np.concatenate(depth_parts)
-    if pix.size == 0:
-        return z_aug
-    order = np.lexsort((depth, pix))
-    pix, depth = pix[order], depth[order]
-    group_start = np.flatnonzero(np.r_[True, pix[1:] != pix[:-1]])
-    group_size = np.diff(np.r_[group_start, pix.size])
-    rank = np.arange(pix.size) - np.repeat(group_start, group_size)
-    by_rank = np.argsort(rank, kind="stable")
-    bounds = np.searchsorted(rank[by_rank], np.arange(int(rank.max()) + 2))
-    rays = _rays(camera)
-    resolved = np.zeros(n, dtype=bool)
-    for k in range(bounds.size - 1):
-        idx = by_rank[bounds[k] : bounds[k + 1]]
-        idx = idx[~resolved[pix[idx]]]
-        if idx.size == 0:
-            continue
-        points = depth[idx, None] * rays[pix[idx]]
-        u_candidate = largest_covariance_eigenvalue(points, camera, sigma_px)
-        plus, total = _relaxed_votes(points, u_candidate, query, refs, camera, sigma_max, reading)
-        valid = (plus >= min_positive_votes) & (total > 0)
-        z_aug[pix[idx[valid]]] = depth[idx[valid]]
-        resolved[pix[idx[valid]]] = True
+    pending = np.ascontiguousarray(pending, dtype=np.bool_).reshape(-1)
+    if not refs or not pending.any():
+        return np.full(pending.size, np.nan)
+    code = _reading(reading)
+    # Stacked copies (about 8 MB per view at KITTI size): indexing one 3-D array in the kernels' inner loops
+    # costs nothing, while a list of arrays costs a reference-count update per access.
+    ref_points = np.stack([ref.points for ref in refs])
+    ref_valid = np.stack([ref.valid for ref in refs])
+    ref_u = np.stack([ref.u for ref in refs])
+    query_from_ref = np.stack([query.from_view(ref) for ref in refs])
+    ref_from_query = np.stack([ref.from_view(query) for ref in refs])
+    geometry = (camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height)
+    pixel, depth = kernels.splat_into_pending(pending, ref_points, ref_valid, query_from_ref, *geometry)
+    best = kernels.nearest_candidate(pixel, depth, pending.size)
+    vote = (ref_points, ref_valid, ref_u, ref_from_query, *geometry, camera.baseline)
+    rest = (float(sigma_px), float(sigma_max), code, int(min_positive_votes))
+    # Round 1: each pixel's nearest candidate (on the synthetic street it is the validated one for 97 % of pixels).
+    z_aug, retry = kernels.vote_nearest(best, *vote, *rest)
+    if retry.any():
+        # Later rounds, only for pixels whose nearest candidate failed: their farther ones, nearest first.
+        start, sorted_depth = kernels.group_candidates(pixel, depth, retry)
+        kernels.vote_farther(z_aug, best, start, sorted_depth, *vote, *rest)
     return z_aug
 
 
@@ -178,12 +150,22 @@ def outlier_negatives(
     sigma_px: float,
     reading: str,
 ) -> NDArray[np.bool_]:
-    """Pending query pixels (flat) whose depth lies in front of the augmented depth by more than the margin."""
-    has = pending & np.isfinite(z_aug)
-    sel = np.flatnonzero(has)
-    points = z_aug[sel, None] * _rays(camera)[sel]
-    u_aug = largest_covariance_eigenvalue(points, camera, sigma_px)
-    z_q = query.points[sel, 2].astype(np.float64)
-    negative = np.zeros(pending.size, dtype=bool)
-    negative[sel] = z_q < z_aug[sel] - augmented_margin(u_aug, sigma_max, reading)
-    return negative
+    """Pending query pixels (flat) whose depth lies in front of the augmented depth by more than the margin.
+
+    One pass per pixel (:func:`selfcontra_ros.stages.kernels.outlier_negatives_kernel`); the margin is
+    :func:`augmented_margin` of ``u_aug``, the augmented point's uncertainty as seen by Q's pair alone.
+    """
+    return kernels.outlier_negatives_kernel(
+        np.ascontiguousarray(query.points[:, 2]),
+        np.ascontiguousarray(z_aug, dtype=np.float64).reshape(-1),
+        np.ascontiguousarray(pending, dtype=np.bool_).reshape(-1),
+        camera.fx,
+        camera.fy,
+        camera.cx,
+        camera.cy,
+        camera.width,
+        camera.baseline,
+        float(sigma_px),
+        float(sigma_max),
+        _reading(reading),
+    )

@@ -6,7 +6,9 @@ camera centres exceeds ``alpha_min`` and the reference measurement found by
 lookup lies within ``sigma_max`` of ``X_q``. It then activates the angular bin
 ``floor(alpha / alpha_min)``; ``support`` counts distinct bins, so many views
 from one direction count once. Bins are bits of a ``uint64`` mask per pixel,
-OR-ed as views arrive.
+OR-ed as views arrive. Stage 1 is incremental: an arriving view is tested
+against each view of the window in both directions (:func:`update_support`),
+and nothing already computed is recomputed.
 """
 
 from __future__ import annotations
@@ -15,8 +17,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from selfcontra_ros.geometry import StereoCamera
-from selfcontra_ros.projection import lookup, transform
-from selfcontra_ros.stages._common import within_tolerance
+from selfcontra_ros.projection import transform
+from selfcontra_ros.stages import kernels
+from selfcontra_ros.stages._common import tolerance_code
 from selfcontra_ros.window import View
 
 __all__ = ["MAX_BINS", "observation_angle_deg", "support_bits", "update_support"]
@@ -29,10 +32,10 @@ def observation_angle_deg(
     points: NDArray[np.float64], centre_a: NDArray[np.float64], centre_b: NDArray[np.float64]
 ) -> NDArray[np.float64]:
     """Angle (degrees) at each point between the directions to two camera centres (all in one frame, metres)."""
-    to_a = centre_a - points
-    to_b = centre_b - points
-    cos = np.einsum("ij,ij->i", to_a, to_b) / (np.linalg.norm(to_a, axis=-1) * np.linalg.norm(to_b, axis=-1))
-    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    rows = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+    return kernels.observation_angle_rows(
+        rows, np.asarray(centre_a, dtype=np.float64).reshape(3), np.asarray(centre_b, dtype=np.float64).reshape(3)
+    )
 
 
 def support_bits(
@@ -45,38 +48,38 @@ def support_bits(
     sigma_px: float,
     tolerance: str,
 ) -> NDArray[np.uint64]:
-    """Angular bins (bit mask per query pixel, flat ``(H*W,)``) that ``ref`` activates for ``query``."""
-    bits = np.zeros(query.valid.size, dtype=np.uint64)
-    q_index = np.flatnonzero(query.valid)
-    x_q = query.points[q_index].astype(np.float64)
-    ref_from_query = ref.from_view(query)
-    found = lookup(x_q, ref_from_query, camera, ref.valid)
+    """Angular bins (bit mask per query pixel, flat ``(H*W,)``) that ``ref`` activates for ``query``.
 
+    One fused pass per query pixel (:func:`selfcontra_ros.stages.kernels.support_bits_kernel`):
+    lookup, observation angle, tolerance test, bin.
+    """
     # Both mean centres in the query's left frame.
     centre_q = np.array([0.5 * camera.baseline, 0.0, 0.0])
     centre_r = transform(query.pose_inv, ref.centre[None, :])[0]
-    alpha = observation_angle_deg(x_q, centre_r, centre_q)
-    keep = found.ok & (alpha > alpha_min_deg)
-    q_index, x_q, alpha = q_index[keep], x_q[keep], alpha[keep]
-    r_index = found.ref_index[keep]
-
-    x_r = ref.points[r_index].astype(np.float64)
-    x_r_in_q = transform(query.from_view(ref), x_r)
-    close = within_tolerance(
-        tolerance,
-        x_q,
-        x_r,
-        x_r_in_q,
-        ref_from_query,
-        query.u[q_index],
-        ref.u[r_index],
-        camera,
-        sigma_px,
-        sigma_max,
+    return kernels.support_bits_kernel(
+        query.points,
+        query.valid,
+        query.u,
+        ref.points,
+        ref.valid,
+        ref.u,
+        ref.from_view(query),
+        query.from_view(ref),
+        centre_r,
+        centre_q,
+        camera.fx,
+        camera.fy,
+        camera.cx,
+        camera.cy,
+        camera.width,
+        camera.height,
+        camera.baseline,
+        float(sigma_px),
+        float(alpha_min_deg),
+        float(sigma_max),
+        tolerance_code(tolerance),
+        MAX_BINS,
     )
-    bins = np.minimum(np.floor(alpha[close] / alpha_min_deg), MAX_BINS - 1).astype(np.uint64)
-    bits[q_index[close]] = np.left_shift(np.uint64(1), bins)
-    return bits
 
 
 def update_support(
