@@ -87,6 +87,12 @@ def _cmd_label(args: argparse.Namespace) -> int:
             source, out, params_file=args.params, frames=args.frames, estimate_poses=args.estimate_poses
         )
         written = f"wrote labels and metrics.json to {out}"
+        if metrics["skipped_frames"]:
+            written += (
+                f" ({len(metrics['frames'])} frames labelled; not labelled: {len(metrics['skipped_frames'])}, "
+                "the keyframe rule's skips and the last views without label_delay newer ones, which "
+                "labeler.flush_incomplete: true labels too)"
+            )
     mean = metrics.get("mean", {})
     if mean:
         print("mean: " + ", ".join(f"{k}={v:.4f}" for k, v in mean.items() if isinstance(v, float)))
@@ -127,12 +133,17 @@ def _cmd_odometry(args: argparse.Namespace) -> int:
 def _cmd_train(args: argparse.Namespace) -> int:
     from selfcontra_ros.confidence.commands import train_command
     from selfcontra_ros.matching.base import MatcherParams
+    from selfcontra_ros.threads import cap_jobs
 
     if len(args.data) != len(args.labels):
         raise SelfContraError(f"give one --labels per --data ({len(args.data)} --data, {len(args.labels)} --labels)")
     matcher = MatcherParams(algorithm=args.algorithm) if args.algorithm else None
     summary = train_command(
-        list(zip(args.data, args.labels, strict=True)), args.features, Path(args.out), matcher=matcher, n_jobs=args.jobs
+        list(zip(args.data, args.labels, strict=True)),
+        args.features,
+        Path(args.out),
+        matcher=matcher,
+        n_jobs=cap_jobs(args.jobs),
     )
     print(
         f"trained {summary['feature_set']} forest on {summary['samples']} samples from {summary['frames']} frames "
@@ -160,6 +171,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="selfcontra",
         description="Stereo confidence labels from self-contradiction (Mostegel et al., CVPR 2016).",
+    )
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=0,
+        help="threads per pool (numba, OpenCV, BLAS, scikit-learn jobs); 0 = every core this process may use",
     )
     sub = parser.add_subparsers(dest="command", required=True)
 
@@ -285,6 +302,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``selfcontra`` command; returns the process exit code."""
     args = build_parser().parse_args(argv)
     try:
+        from selfcontra_ros.threads import limit_threads
+
+        limit_threads(args.threads)
         return int(args.handler(args))
     except SelfContraError as exc:
         print(f"selfcontra {args.command}: error: {exc}", file=sys.stderr)

@@ -68,8 +68,12 @@ def _format(mean: dict[str, Any]) -> str:
     )
 
 
-def _run_ros(bag: Path, params: Path, frames: int, out: Path) -> dict[int, dict[str, Any]]:
-    """Replay ``bag`` through a labeler process; record its outputs. Returns ``stamp_ns -> messages``."""
+def _run_ros(bag: Path, params: Path, labelled: int, out: Path) -> dict[int, dict[str, Any]]:
+    """Replay ``bag`` through a labeler process; record its outputs. Returns ``stamp_ns -> messages``.
+
+    ``labelled`` is the number of label images to wait for (frames with ``label_delay`` newer frames,
+    or every frame when the parameters label incomplete views at the end).
+    """
     import rclpy
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
     from rclpy.serialization import deserialize_message
@@ -164,12 +168,14 @@ def _run_ros(bag: Path, params: Path, frames: int, out: Path) -> dict[int, dict[
         if player.returncode != 0:
             raise RuntimeError(f"demo: the player failed; see {logs / 'player.log'}")
         spin_until(
-            lambda: bool(stats) and stats[-1]["counts"]["views_labelled"] >= frames, _WAIT_S, "the labeler to catch up"
+            lambda: bool(stats) and stats[-1]["counts"]["views_labelled"] >= labelled,
+            _WAIT_S,
+            "the labeler to catch up",
         )
-        labeler.send_signal(signal.SIGINT)  # flush_on_shutdown: the last label_delay views get labels too
+        labeler.send_signal(signal.SIGINT)  # flush_on_shutdown: as label_bag at the end of the bag
         complete = (topics.LABELS, topics.LABELS_COLOR)
         spin_until(
-            lambda: sum(all(k in m for k in complete) for m in recorded.values()) >= frames,
+            lambda: sum(all(k in m for k in complete) for m in recorded.values()) >= labelled,
             120.0,
             "the flushed labels",
         )
@@ -200,6 +206,8 @@ def _evaluate_ros(recorded: dict[int, dict[str, Any]], sequence_dir: Path, out: 
     figures = []
     for index, stamp in enumerate(sorted(recorded)):
         messages = recorded[stamp]
+        if topics.LABELS not in messages:
+            continue  # a last view without label_delay newer views (labeler.flush_incomplete: false)
         labels = image_to_numpy(messages[topics.LABELS])
         disparity = disparity_from_message(messages[topics.DISPARITY])[0]
         gt = sequence[index].gt_disparity
@@ -246,9 +254,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     params.write_text(yaml.safe_dump({"/**": body}, sort_keys=False))
 
     offline = label_bag(bag, out / "offline_bag", params_file=params)
-    print(f"2. offline `selfcontra label BAG`: {_format(offline['mean'])}")
+    labelled = len(offline["frames"])
+    print(f"2. offline `selfcontra label BAG`, {labelled} labelled frames: {_format(offline['mean'])}")
 
-    recorded = _run_ros(bag, params, args.frames, out)
+    recorded = _run_ros(bag, params, labelled, out)
     ros_mean = _evaluate_ros(recorded, sequence_dir, out)
     print(f"3. over ROS 2 (player node -> labeler node -> recorder): {_format(ros_mean)}")
     print(f"   outputs: {out / 'ros_outputs'} (MCAP), colour labels in {out / 'labels_color'}")

@@ -145,7 +145,7 @@ def test_views_closer_than_alpha_min_give_no_support() -> None:
     angles = (-4.0, -2.0, 0.0, 2.0, 4.0)
     poses = [orbit_pose(a) for a in angles]
     disparities = [CAMERA.depth_to_disparity(render_depth(p, PLANES[:1])) for p in poses]
-    params = LabelerParams(window_size=5, label_delay=2)
+    params = LabelerParams(window_size=5, label_delay=2, flush_incomplete=True)
     results = run(disparities, poses, params)
     assert len(results) == 5
     for result in results:

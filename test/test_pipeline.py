@@ -33,17 +33,25 @@ def street(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 @pytest.fixture(scope="module")
-def labelled(street: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
+def small_window(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Parameters with a window short enough for 8 frames: frames 0-4 get label_delay newer views, 5-7 not."""
+    path = tmp_path_factory.mktemp("params") / "labeler.yaml"
+    path.write_text("labeler:\n  ros__parameters:\n    labeler:\n      window_size: 6\n      label_delay: 3\n")
+    return path
+
+
+@pytest.fixture(scope="module")
+def labelled(street: Path, small_window: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
     out = tmp_path_factory.mktemp("labels")
-    return out, label_sequence(street, out)
+    return out, label_sequence(street, out, params_file=small_window)
 
 
 def test_writes_label_images_and_metrics(street: Path, labelled: tuple[Path, dict]) -> None:
     out, report = labelled
     on_disk = json.loads((out / "metrics.json").read_text())
     frames = [entry["frame"] for entry in on_disk["frames"]]
-    assert frames and frames == sorted(frames)
-    assert set(frames) | set(on_disk["skipped_frames"]) == set(range(FRAMES))
+    assert frames == [0, 1, 2, 3, 4]  # the last label_delay frames are not labelled (flush_incomplete: false)
+    assert on_disk["skipped_frames"] == [5, 6, 7]
     assert sorted(p.name for p in (out / "labels").iterdir()) == [f"{i:06d}.png" for i in frames]
     assert on_disk["has_ground_truth"] is True
     assert on_disk["params"]["matcher"]["algorithm"] == "sgbm"
@@ -73,10 +81,10 @@ def test_writes_label_images_and_metrics(street: Path, labelled: tuple[Path, dic
     assert 0.0 < report["mean"]["coverage"] <= 1.0
 
 
-def test_labels_equal_a_direct_labeler_run(street: Path, labelled: tuple[Path, dict]) -> None:
+def test_labels_equal_a_direct_labeler_run(street: Path, small_window: Path, labelled: tuple[Path, dict]) -> None:
     """The pipeline adds nothing to the labels: the same Labeler fed by hand gives the same images."""
     out, _ = labelled
-    matcher_params, labeler_params = load_params(None)
+    matcher_params, labeler_params = load_params(small_window)
     sequence = open_sequence(street)
     matcher = make_matcher(matcher_params)
     labeler = Labeler(sequence.camera, labeler_params)
@@ -118,11 +126,11 @@ def test_external_matcher_and_empty_range_are_rejected(street: Path, tmp_path: P
         label_sequence(street, tmp_path / "out", frames=slice(50, 60))
 
 
-def test_without_ground_truth_reports_label_shares(street: Path, tmp_path: Path) -> None:
+def test_without_ground_truth_reports_label_shares(street: Path, small_window: Path, tmp_path: Path) -> None:
     copy = tmp_path / "nogt"
     shutil.copytree(street, copy)
     shutil.rmtree(copy / "sequences" / "00" / "disp_0")
-    report = label_sequence(copy, tmp_path / "out")
+    report = label_sequence(copy, tmp_path / "out", params_file=small_window)
     assert report["has_ground_truth"] is False
     assert set(report["mean"]) == {
         "query_valid_share",

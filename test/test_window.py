@@ -52,7 +52,13 @@ def test_keyframe_rule_skips_small_motion_only() -> None:
 
 
 def test_window_memory_stays_bounded_and_labels_come_late() -> None:
-    params = LabelerParams(window_size=4, label_delay=2, keyframe_min_translation=0.0, keyframe_min_rotation_deg=0.0)
+    params = LabelerParams(
+        window_size=4,
+        label_delay=2,
+        keyframe_min_translation=0.0,
+        keyframe_min_rotation_deg=0.0,
+        flush_incomplete=True,
+    )
     labeler = Labeler(CAMERA, params)
     seen = []
     for i in range(30):
@@ -73,13 +79,28 @@ def test_window_memory_stays_bounded_and_labels_come_late() -> None:
 
 
 def test_skipped_views_are_counted_and_not_labelled() -> None:
-    labeler = Labeler(CAMERA, LabelerParams(window_size=3, label_delay=1, keyframe_min_translation=0.2))
+    params = LabelerParams(window_size=3, label_delay=1, keyframe_min_translation=0.2, flush_incomplete=True)
+    labeler = Labeler(CAMERA, params)
     keys = []
     for i, x in enumerate([0.0, 0.05, 0.5, 0.52, 1.0]):
         keys += [r.key for r in labeler.add_view(_wall_disparity(), _pose(x), stamp=float(i))]
     keys += [r.key for r in labeler.flush()]
     assert labeler.skipped_views == 2
     assert keys == [0, 2, 4]  # default keys: the running number of add_view calls
+
+
+def test_flush_drops_incomplete_views_by_default() -> None:
+    params = LabelerParams(window_size=5, label_delay=3, keyframe_min_translation=0.0, keyframe_min_rotation_deg=0.0)
+    labeler = Labeler(CAMERA, params)
+    keys = []
+    for i in range(7):
+        keys += [r.key for r in labeler.add_view(_wall_disparity(), _pose(0.5 * i), stamp=float(i), key=i)]
+    assert keys == [0, 1, 2, 3]  # each with label_delay newer views
+    assert labeler.flush() == []
+    assert labeler.dropped_views == 3 and len(labeler.window) == 0
+    # The next sequence starts afresh: nothing of the dropped views is labelled later.
+    keys = [r.key for i in range(4) for r in labeler.add_view(_wall_disparity(), _pose(0.5 * i), stamp=i, key=10 + i)]
+    assert keys == [10]
 
 
 def test_label_delay_zero_labels_the_arriving_view() -> None:

@@ -42,6 +42,9 @@ DISPARITY = topics.bag_topic(topics.DISPARITY)
 CONFIDENCE, DEPTH_FILTERED = topics.bag_topic(topics.CONFIDENCE), topics.bag_topic(topics.DEPTH_FILTERED)
 OUTPUTS = {LABELS, LABELS_COLOR, DEPTH, DISPARITY, CONFIDENCE, DEPTH_FILTERED}
 
+#: the package defaults, labelling the last views too (the test sequences are shorter than the window)
+FLUSH = Path(__file__).parent / "flush_all.yaml"
+
 
 @pytest.fixture(scope="module")
 def sequence(tmp_path_factory: pytest.TempPathFactory) -> Path:
@@ -59,13 +62,13 @@ def in_bag(sequence: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
 def reference(sequence: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, Any]]:
     """The sequence labeler's output on the same frames and parameters."""
     out = tmp_path_factory.mktemp("reference")
-    return out, label_sequence(sequence, out)
+    return out, label_sequence(sequence, out, params_file=FLUSH)
 
 
 @pytest.fixture(scope="module")
 def labelled(in_bag: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, Any]]:
     out = tmp_path_factory.mktemp("out") / "labelled"
-    return out, label_bag(in_bag, out, progress=False)
+    return out, label_bag(in_bag, out, params_file=FLUSH, progress=False)
 
 
 def _left_stamps(bag_path: Path) -> list[int]:
@@ -155,7 +158,7 @@ def test_metrics_equal_the_sequence_labeler(
 
 def test_depth_and_disparity_are_the_query_algorithms(in_bag: Path, labelled: tuple[Path, dict[str, Any]]) -> None:
     out, _ = labelled
-    matcher = make_matcher(load_params(None)[0])
+    matcher = make_matcher(load_params(FLUSH)[0])
     with open_bag(out) as bag:
         infos = [next(bag.messages([topics.bag_topic(n)])).msg for n in (topics.LEFT_INFO, topics.RIGHT_INFO)]
         camera = stereo_camera_from_camera_infos(*infos)
@@ -255,7 +258,7 @@ def test_interruption_leaves_a_readable_bag(in_bag: Path, tmp_path: Path, monkey
     monkeypatch.setattr(label_bag_module.LabelingSession, "process", interrupted)
     out = tmp_path / "partial"
     with pytest.raises(KeyboardInterrupt):
-        label_bag(in_bag, out, progress=False)
+        label_bag(in_bag, out, params_file=FLUSH, progress=False)
     stamps = _left_stamps(in_bag)
     with open_bag(out) as bag:
         assert bag.topics[DEPTH].message_count == 4
@@ -273,19 +276,19 @@ def test_truncated_or_corrupt_input_raises_bag_error(in_bag: Path, tmp_path: Pat
     data = mcap.read_bytes()
     mcap.write_bytes(data[: len(data) // 2])
     with pytest.raises(BagError, match=r"truncated|corrupt"):
-        label_bag(truncated, tmp_path / "out1", progress=False)
+        label_bag(truncated, tmp_path / "out1", params_file=FLUSH, progress=False)
     mcap.write_bytes(data[:64] + bytes(len(data) - 64))
     with pytest.raises(BagError, match=r"truncated|corrupt"):
-        label_bag(truncated, tmp_path / "out2", progress=False)
+        label_bag(truncated, tmp_path / "out2", params_file=FLUSH, progress=False)
     assert not (tmp_path / "out1").exists() and not (tmp_path / "out2").exists()  # refused before writing
     with pytest.raises(BagError, match="does not exist"):
-        label_bag(tmp_path / "missing", tmp_path / "out3", progress=False)
+        label_bag(tmp_path / "missing", tmp_path / "out3", params_file=FLUSH, progress=False)
     # Damage inside a chunk, index and footer intact: found while reading, the partial output stays readable.
     damaged = bytearray(data)
     damaged[len(data) // 2 : len(data) // 2 + 2000] = bytes(2000)
     mcap.write_bytes(bytes(damaged))
     with pytest.raises(BagError, match=r"corrupt or truncated"):
-        label_bag(truncated, tmp_path / "out4", progress=False)
+        label_bag(truncated, tmp_path / "out4", params_file=FLUSH, progress=False)
     with open_bag(tmp_path / "out4") as bag:
         assert len(list(bag.raw_messages())) == bag.message_count
     assert json.loads(metrics_path(tmp_path / "out4").read_text())["status"] == "failed"
@@ -296,17 +299,17 @@ def test_an_existing_output_is_never_overwritten(in_bag: Path, tmp_path: Path) -
     out.mkdir()
     (out / "keep.txt").write_text("mine")
     with pytest.raises(BagError, match="exists already"):
-        label_bag(in_bag, out, progress=False)
+        label_bag(in_bag, out, params_file=FLUSH, progress=False)
     assert [p.name for p in out.iterdir()] == ["keep.txt"]
 
 
 def test_bad_arguments_raise_package_errors(in_bag: Path, tmp_path: Path) -> None:
     with pytest.raises(SelfContraError, match="exact"):
-        label_bag(in_bag, tmp_path / "o1", sync="exact", slop=0.01, progress=False)
+        label_bag(in_bag, tmp_path / "o1", sync="exact", slop=0.01, params_file=FLUSH, progress=False)
     with pytest.raises(SelfContraError, match="max_pose_gap"):
-        label_bag(in_bag, tmp_path / "o2", max_pose_gap=-1.0, progress=False)
+        label_bag(in_bag, tmp_path / "o2", max_pose_gap=-1.0, params_file=FLUSH, progress=False)
     with pytest.raises(SelfContraError, match="external"):
-        label_bag(in_bag, tmp_path / "o3", disparity_topic="/stereo/disparity", progress=False)
+        label_bag(in_bag, tmp_path / "o3", disparity_topic="/stereo/disparity", params_file=FLUSH, progress=False)
     assert not any(tmp_path.iterdir())
 
 
@@ -315,9 +318,9 @@ def test_missing_pose_topic_and_labelled_input_are_refused(
 ) -> None:
     no_pose = _rewrite(in_bag, tmp_path / "no_pose", lambda _f, t, s, m: [] if t == POSE else [(t, s, m)])
     with pytest.raises(BagError, match="pose"):
-        label_bag(no_pose, tmp_path / "out1", progress=False)
+        label_bag(no_pose, tmp_path / "out1", params_file=FLUSH, progress=False)
     with pytest.raises(BagError, match="output topic"):
-        label_bag(labelled[0], tmp_path / "out2", progress=False)
+        label_bag(labelled[0], tmp_path / "out2", params_file=FLUSH, progress=False)
 
 
 def test_bad_messages_are_counted_and_skipped(in_bag: Path, tmp_path: Path) -> None:
@@ -333,7 +336,7 @@ def test_bad_messages_are_counted_and_skipped(in_bag: Path, tmp_path: Path) -> N
 
     bad = _rewrite(in_bag, tmp_path / "bad", damage)
     # Poses are 0.1 s apart: with a 0.15 s gap limit frame 5 cannot bridge its lost pose.
-    report = label_bag(bad, tmp_path / "out", progress=False, max_pose_gap=0.15)
+    report = label_bag(bad, tmp_path / "out", params_file=FLUSH, progress=False, max_pose_gap=0.15)
     assert report["status"] == "complete"
     assert report["dropped"] == {"bad_encoding": 1, "bad_pose": 1, "image_mismatch": 1, "pose_gap": 1}
     assert report["dropped_frames"] == [
@@ -347,7 +350,7 @@ def test_bad_messages_are_counted_and_skipped(in_bag: Path, tmp_path: Path) -> N
         assert bag.topics[DEPTH].message_count == 5
         assert bag.topics[LABELS].message_count == len(labelled_frames)
     # With the default gap limit (0.5 s) frame 5 takes the pose interpolated from frames 4 and 6.
-    report = label_bag(bad, tmp_path / "out_default", progress=False)
+    report = label_bag(bad, tmp_path / "out_default", params_file=FLUSH, progress=False)
     assert report["dropped"] == {"bad_encoding": 1, "bad_pose": 1, "image_mismatch": 1}
 
 
@@ -379,11 +382,17 @@ def test_approximate_sync_and_odometry_poses(
         return [(topic, log_ns, msg)]
 
     shifted = _rewrite(in_bag, tmp_path / "shifted", shift)
-    exact = label_bag(shifted, tmp_path / "exact", progress=False, pose_topic="/odom")
+    exact = label_bag(shifted, tmp_path / "exact", params_file=FLUSH, progress=False, pose_topic="/odom")
     assert exact["frames"] == [] and exact["frames_synchronised"] == 0
     assert exact["dropped"]["unsynchronised_left"] == FRAMES
     approximate = label_bag(
-        shifted, tmp_path / "approximate", sync="approximate", slop=0.005, progress=False, pose_topic="/odom"
+        shifted,
+        tmp_path / "approximate",
+        sync="approximate",
+        slop=0.005,
+        params_file=FLUSH,
+        progress=False,
+        pose_topic="/odom",
     )
     ref_dir, ref = reference
     assert approximate["dropped"] == {}
@@ -403,7 +412,9 @@ def test_external_disparity_topic(in_bag: Path, tmp_path: Path) -> None:
         lambda _f, t, s, m: [(t, s, m), ("/ext/disparity", s, m)] if t == gt_topic else [(t, s, m)],
     )
     params = tmp_path / "external.yaml"
-    params.write_text("labeler:\n  ros__parameters:\n    matcher: {algorithm: external}\n")
+    params.write_text(
+        "labeler:\n  ros__parameters:\n    matcher: {algorithm: external}\n    labeler: {flush_incomplete: true}\n"
+    )
     out = tmp_path / "external_out"
     report = label_bag(with_external, out, params_file=params, disparity_topic="/ext/disparity", progress=False)
     assert report["dropped"] == {} and report["frames"]

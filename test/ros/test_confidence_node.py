@@ -43,6 +43,7 @@ labeler:
     labeler:
       window_size: 6
       label_delay: {DELAY}
+      stage2_edge_jump_px: 0.0  # no fattening band: at 320x96 it leaves view 0 without positives (no sample)
     confidence:
       confidence_threshold: {THRESHOLD}
       retrain_every: 3

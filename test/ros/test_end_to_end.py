@@ -36,6 +36,7 @@ PARAMS_YAML = f"""\
     labeler:
       window_size: 6
       label_delay: {DELAY}
+      flush_incomplete: true  # flush_on_shutdown labels the last label_delay views too
 """
 # The bag's pace (10 Hz): a labeling takes 0.05-0.1 s here, so the labeler keeps up; the label queue
 # (16 views) absorbs any hiccup of a loaded CI machine. Nothing may be skipped (asserted below).

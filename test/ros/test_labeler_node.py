@@ -42,6 +42,7 @@ labeler:
     labeler:
       window_size: 6
       label_delay: {DELAY}
+      flush_incomplete: true  # flush_on_shutdown labels the last label_delay views too
 """
 
 

@@ -15,7 +15,7 @@ from selfcontra_ros.stages.outliers import (
     trivial_outliers,
 )
 from selfcontra_ros.stages.support import support_bits, update_support
-from selfcontra_ros.stages.voting import consistency_voting
+from selfcontra_ros.stages.voting import consistency_voting, fattening_band
 from selfcontra_ros.window import View, make_view, support_count
 
 CAMERA = StereoCamera(fx=200.0, fy=200.0, cx=79.5, cy=59.5, baseline=0.5, width=160, height=120)
@@ -327,3 +327,60 @@ def test_stage3_tolerance_readings() -> None:
     np.testing.assert_allclose(candidate_tolerance(u_a, u_b, 2.0, "paper"), [2.0 * (5.0 + 1.0 / 0.3)])
     np.testing.assert_allclose(augmented_margin(u_a, 2.0, "std"), [0.4])
     np.testing.assert_allclose(augmented_margin(u_a, 2.0, "paper"), [10.0])
+
+
+# Stage 2: the fattening band
+
+
+def _band_by_loops(disp: np.ndarray, jump: float, left: int, other: int) -> np.ndarray:
+    """Obviously correct reference: look at every neighbour of every pixel."""
+    h, w = disp.shape
+    valid = np.isfinite(disp) & (disp > 0)
+    band = np.zeros((h, w), dtype=bool)
+    for r in range(h):
+        for c in range(w):
+            if not valid[r, c]:
+                continue
+            for rr in range(max(r - other, 0), min(r + other, h - 1) + 1):
+                for cc in range(max(c - left, 0), min(c + other, w - 1) + 1):
+                    if valid[rr, cc] and disp[r, c] - disp[rr, cc] > jump:
+                        band[r, c] = True
+    return band
+
+
+def test_fattening_band_matches_brute_force() -> None:
+    rng = np.random.default_rng(3)
+    disp = np.full((30, 40), 10.0)
+    disp[8:20, 15:30] = 30.0  # an object in front
+    disp += rng.normal(0.0, 0.5, disp.shape)
+    disp[rng.random(disp.shape) < 0.1] = np.nan  # holes are neither band nor neighbours
+    disp[0, :5] = 0.0
+    for jump, left, other in ((4.0, 6, 2), (4.0, 0, 0), (1.0, 3, 3), (4.0, 16, 3)):
+        got = fattening_band(disp, jump_px=jump, occluded_side_px=left, other_px=other)
+        np.testing.assert_array_equal(got, _band_by_loops(disp, jump, left, other))
+
+
+def test_fattening_band_reaches_further_left() -> None:
+    disp = np.full((40, 60), 10.0)
+    disp[10:30, 20:40] = 30.0
+    band = fattening_band(disp, jump_px=4.0, occluded_side_px=8, other_px=2)
+    rows = band[20]  # a row through the middle of the object
+    assert not rows[:20].any() and not rows[40:].any()  # the background is never in the band
+    np.testing.assert_array_equal(np.flatnonzero(rows), [*range(20, 28), 38, 39])
+    assert band[10:12, 30].all() and not band[12:28, 30].any() and band[28:30, 30].all()
+
+
+def test_no_positive_label_in_the_fattening_band() -> None:
+    query = view_at(0.0, radius=9.0)
+    refs = [_supported(view_at(20.0, radius=6.0)), _supported(view_at(-20.0, radius=6.0))]
+    disp = query.disparity.reshape(CAMERA.height, CAMERA.width).copy()
+    step = np.zeros_like(disp, dtype=bool)
+    step[:, :80] = True  # pretend everything left of column 80 lies well behind: an object's left edge
+    query.disparity[step] -= 5.0  # only the band sees the edited disparity; the 3D points stay on the wall
+    off = consistency_voting(query, refs, CAMERA, tolerance="sum", **KW).labels.reshape(disp.shape)
+    on = consistency_voting(query, refs, CAMERA, tolerance="sum", edge_jump_px=4.0, **KW).labels.reshape(disp.shape)
+    band = fattening_band(query.disparity.reshape(disp.shape), jump_px=4.0, occluded_side_px=16, other_px=3)
+    assert band[:, 80:96].all() and not band[:, :80].any() and not band[:, 96:].any()
+    assert np.all(off[40:80, 80:96] == POSITIVE)  # the references confirm these points ...
+    assert np.all(on[band] == UNKNOWN)  # ... but a pixel in the band is never positive
+    np.testing.assert_array_equal(on[~band], off[~band])
