@@ -23,6 +23,18 @@ is ``d``, the right one ``d_R``. Every measure is written so that the forest
 can use it as is; the signs follow the usual published ones (e.g. matching
 score is ``-cq``, larger = more confident for most measures, and larger =
 less confident for left-right consistency, variance, deviation and energy).
+
+Speed: every cost-curve statistic (``d1``, ``c1``, ``c2``, ``c2m``, the
+exponential sums, the right-image minimum, ...) comes from one compiled pass
+(:func:`~selfcontra_ros.confidence.kernels.curve_statistics`) that reads each
+valid pixel's curve once and computes everything the feature set asks for
+(each measure declares its :attr:`Measure.curve_request`;
+:func:`compute_features` gathers them before the first is read). With the
+package's window-summed census costs
+(:class:`~selfcontra_ros.matching.census.WindowedCensusCosts`) that pass sums
+the census costs a few image rows at a time and reduces each row at once: no
+HxWxD volume is ever stored, and rows without a valid pixel are not summed.
+The other maps are a few OpenCV filters over the image.
 """
 
 from __future__ import annotations
@@ -37,8 +49,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from selfcontra_ros.confidence import constants
+from selfcontra_ros.confidence import constants, kernels
 from selfcontra_ros.errors import SelfContraError
+from selfcontra_ros.matching.census import WindowedCensusCosts
 
 __all__ = [
     "FeatureContext",
@@ -65,7 +78,8 @@ class FeatureInput:
         disparity: HxW float32 left query disparity, pixels, NaN invalid.
         disparity_right: HxW float32 right disparity, pixels, NaN invalid; None when unknown.
         costs: HxWxD cost volume of the left image, ``costs[v, u, k]`` the cost
-            of disparity ``min_disparity + k`` (lower = better).
+            of disparity ``min_disparity + k`` (lower = better); or window-summed
+            census costs, which the measures reduce without storing the volume.
         cost_scale: divisor turning costs into normalised costs (about 1 = worst match).
         min_disparity: disparity of ``costs[..., 0]``, pixels.
     """
@@ -74,7 +88,7 @@ class FeatureInput:
     right: NDArray[np.generic]
     disparity: F32
     disparity_right: F32 | None
-    costs: NDArray[np.generic]
+    costs: NDArray[np.generic] | WindowedCensusCosts
     cost_scale: float
     min_disparity: int = 0
 
@@ -87,10 +101,16 @@ class FeatureInput:
             value = getattr(self, name)
             if value is not None and np.shape(value) != shape:
                 raise SelfContraError(f"FeatureInput.{name} has shape {np.shape(value)}, the disparity {shape}")
-        if np.ndim(self.costs) != 3 or np.shape(self.costs)[:2] != shape:
-            raise SelfContraError(f"FeatureInput.costs must be HxWxD with HxW = {shape}, got {np.shape(self.costs)}")
+        costs_shape = tuple(self.costs.shape)
+        if len(costs_shape) != 3 or costs_shape[:2] != shape:
+            raise SelfContraError(f"FeatureInput.costs must be HxWxD with HxW = {shape}, got {costs_shape}")
         if not self.cost_scale > 0:
             raise SelfContraError(f"FeatureInput.cost_scale must be > 0, got {self.cost_scale}")
+
+
+_MINIMA = kernels.CurveRequest()
+_LOCAL = kernels.CurveRequest(local=True)
+_RIGHT_MINIMUM = kernels.CurveRequest(right_minimum=True)
 
 
 def _box_mean(values: F32, weights: F32, window: int) -> F32:
@@ -119,13 +139,15 @@ class FeatureContext:
         """Select the valid pixels of ``data`` (see the module docstring)."""
         self.data = data
         d = np.asarray(data.disparity, dtype=np.float32)
-        self.depth = int(np.shape(data.costs)[2])
+        self.depth = int(data.costs.shape[2])
         with np.errstate(invalid="ignore"):
             index = np.rint(d) - data.min_disparity
             self.valid = np.isfinite(d) & (d > 0) & (index >= 0) & (index <= self.depth - 1)
         self.rows, self.cols = np.nonzero(self.valid)
         self.d = d[self.rows, self.cols]
         self.dq = np.clip(np.rint(self.d) - data.min_disparity, 0, self.depth - 1).astype(np.int64)
+        self._request = _MINIMA
+        self._stats: kernels.CurveStatistics | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -139,80 +161,125 @@ class FeatureContext:
 
     # ---------------------------------------------------------------- cost curve
 
-    @cached_property
-    def curves(self) -> F32:
-        """(N, D) normalised cost curves of the valid pixels."""
-        raw = np.asarray(self.data.costs)[self.rows, self.cols, :]
-        return np.asarray(raw, dtype=np.float32) / np.float32(self.data.cost_scale)
+    def prepare(self, request: kernels.CurveRequest) -> None:
+        """Ask for cost-curve statistics before the first one is read, so that one pass computes them all.
 
-    @cached_property
+        :func:`compute_features` prepares its measures' requests
+        (:attr:`Measure.curve_request`). A statistic read without being
+        prepared costs a further pass over the curves (with windowed census
+        costs, over the census volume again).
+        """
+        self._request = self._request | request
+
+    def _statistics(self, request: kernels.CurveRequest) -> kernels.CurveStatistics:
+        """The statistics, computed (in one pass with everything prepared) or completed on first use."""
+        # Whatever is prepared comes along: a context reused for a second feature set costs one more pass.
+        wanted = self._request | request
+        stats = self._stats
+        if stats is None:
+            stats = self._stats = self._pass(wanted)
+            return stats
+        missing = kernels.CurveRequest(
+            local=wanted.local and stats.c2m is None,
+            exp_terms=tuple(
+                t for t in wanted.exp_terms if (t[0], t[1]) not in stats.exp or (t[2] and stats.exp[t[:2]][1] is None)
+            ),
+            right_minimum=wanted.right_minimum and stats.right_minimum is None,
+        )
+        if missing.local or missing.exp_terms or missing.right_minimum:
+            extra = self._pass(missing)
+            stats.c2m, stats.d2m, stats.total = (
+                (extra.c2m, extra.d2m, extra.total) if missing.local else (stats.c2m, stats.d2m, stats.total)
+            )
+            stats.exp.update(extra.exp)
+            stats.right_minimum = extra.right_minimum if missing.right_minimum else stats.right_minimum
+        return stats
+
+    def _pass(self, request: kernels.CurveRequest) -> kernels.CurveStatistics:
+        data = self.data
+        return kernels.curve_statistics(
+            data.costs,
+            self.rows,
+            self.cols,
+            self.dq,
+            data.cost_scale,
+            min_disparity=data.min_disparity,
+            request=request,
+        )
+
+    @property
     def d1(self) -> NDArray[np.int64]:
-        """(N,) index of the curve minimum."""
-        return np.argmin(self.curves, axis=1)
+        """(N,) index of the curve minimum (first on ties)."""
+        return self._statistics(_MINIMA).d1
 
-    @cached_property
+    @property
     def c1(self) -> F32:
         """(N,) curve minimum."""
-        return np.asarray(self.curves[np.arange(self.count), self.d1], dtype=np.float32)
+        return self._statistics(_MINIMA).c1
 
-    @cached_property
+    @property
     def c2(self) -> F32:
         """(N,) second smallest curve value (naive second cost)."""
-        if self.depth < 2:
-            return self.c1.copy()
-        return np.asarray(np.partition(self.curves, 1, axis=1)[:, 1], dtype=np.float32)
-
-    @cached_property
-    def _second_local_minimum(self) -> tuple[F32, NDArray[np.int64]]:
-        c = self.curves
-        n, depth = c.shape
-        inf = np.float32(np.inf)
-        left = np.concatenate([np.full((n, 1), inf, np.float32), c[:, :-1]], axis=1)
-        right = np.concatenate([c[:, 1:], np.full((n, 1), inf, np.float32)], axis=1)
-        # Strict on one side so that a flat valley counts once.
-        is_min = (c < left) & (c <= right)
-        is_min[np.arange(n), self.d1] = False
-        masked = np.where(is_min, c, inf)
-        d2m = np.argmin(masked, axis=1)
-        c2m = masked[np.arange(n), d2m]
-        none = ~np.isfinite(c2m)
-        c2m = np.where(none, c.max(axis=1) if depth else 0.0, c2m).astype(np.float32)
-        d2m = np.where(none, self.d1, d2m)
-        return c2m, d2m
+        return self._statistics(_MINIMA).c2
 
     @property
     def c2m(self) -> F32:
-        """(N,) smallest local minimum other than the global one (curve maximum when none)."""
-        return self._second_local_minimum[0]
+        """(N,) smallest local minimum other than the global one (curve maximum when none).
+
+        A local minimum is strictly below its left neighbour and not above its
+        right one, so that a flat valley counts once.
+        """
+        value = self._statistics(_LOCAL).c2m
+        assert value is not None
+        return value
 
     @property
     def d2m(self) -> NDArray[np.int64]:
         """(N,) index of :attr:`c2m` (``d1`` when there is no second local minimum)."""
-        return self._second_local_minimum[1]
+        value = self._statistics(_LOCAL).d2m
+        assert value is not None
+        return value
 
-    @cached_property
+    @property
     def cq(self) -> F32:
         """(N,) cost at the query disparity."""
-        return np.asarray(self.curves[np.arange(self.count), self.dq], dtype=np.float32)
+        return self._statistics(_MINIMA).cq
 
-    @cached_property
+    @property
+    def curve_sum(self) -> NDArray[np.float64]:
+        """(N,) float64 sum of the normalised cost curve."""
+        value = self._statistics(_LOCAL).total
+        assert value is not None
+        return value
+
+    @property
+    def curve_neighbours(self) -> tuple[F32, F32]:
+        """(N,) costs at ``d1 - 1`` and ``d1 + 1``; at a range end the one neighbour for both."""
+        stats = self._statistics(_MINIMA)
+        return stats.below, stats.above
+
+    def exp_sums(
+        self, rate: float, power: int, *, moment: bool = False
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+        """``sum_d exp(-e(d))`` and ``sum_d e(d) exp(-e(d))``, ``e(d) = rate (c(d) - c1)^power``.
+
+        See :class:`~selfcontra_ros.confidence.kernels.CurveStatistics`; float64 (N,) each, the second only
+        with ``moment``.
+        """
+        stats = self._statistics(kernels.CurveRequest(exp_terms=((rate, power, moment),)))
+        s0, s1 = stats.exp[(rate, power)]
+        return s0, (s1 if moment else None)
+
+    @property
     def right_minimum(self) -> F32:
         """(N,) ``min_k c_R(u - d1, k)``: best right-image cost of the right pixel the winner points at.
 
         ``c_R(x, k) = c_L(x + k, k)`` (same volume re-indexed); entries whose
-        left pixel leaves the image are ignored.
+        left pixel leaves the image are ignored (``c1`` when none is left).
         """
-        costs = np.asarray(self.data.costs)
-        width = self.shape[1]
-        lo = self.data.min_disparity
-        x_right = self.cols - (self.d1 + lo)
-        ks = np.arange(self.depth)[None, :]
-        x_left = x_right[:, None] + ks + lo
-        inside = (x_left >= 0) & (x_left < width)
-        values = costs[self.rows[:, None], np.clip(x_left, 0, width - 1), np.broadcast_to(ks, x_left.shape)]
-        values = np.where(inside, values.astype(np.float32), np.inf)
-        best = values.min(axis=1) / np.float32(self.data.cost_scale)
-        return np.asarray(np.where(np.isfinite(best), best, self.c1), dtype=np.float32)
+        value = self._statistics(_RIGHT_MINIMUM).right_minimum
+        assert value is not None
+        return value
 
     # ---------------------------------------------------------------- maps
 
@@ -261,6 +328,8 @@ class Measure(ABC):
     """
 
     name: ClassVar[str] = ""
+    #: Cost-curve statistics the measure reads beyond the minima, prepared before any is computed.
+    curve_request: ClassVar[kernels.CurveRequest] = kernels.CurveRequest()
 
     def __init__(self, **kwargs: Any) -> None:
         """Store keyword arguments (only ``window`` is understood; others raise)."""
@@ -307,6 +376,12 @@ def make_measure(name: str, kwargs: Mapping[str, Any] | None = None) -> Measure:
 
 # ==================================================================== cost-curve measures
 
+# (rate, power) of the exponential measures' terms e(d) = rate (c(d) - c1)^power.
+_MLM_TERM = (1.0 / (2.0 * constants.MLM_SIGMA**2), 1)
+_AML_TERM = (1.0 / (2.0 * constants.AML_SIGMA**2), 2)
+_PER_TERM = (1.0 / constants.PER_SIGMA**2, 2)
+_NEM_TERM = (1.0 / constants.NEM_TEMPERATURE, 1)
+
 
 @register
 class MatchingScore(Measure):
@@ -324,6 +399,7 @@ class PeakRatio(Measure):
     """PKR: ``(c2m + eps) / (c1 + eps)``, second local minimum over the minimum (>= 1)."""
 
     name = "peak_ratio"
+    curve_request = _LOCAL
 
     def compute(self, ctx: FeatureContext) -> F32:
         """See the class docstring."""
@@ -357,10 +433,12 @@ class WinnerMargin(Measure):
     """WMN: ``(c2m - c1) / (sum_d c(d) + eps)``, local-minimum margin over the curve's total cost."""
 
     name = "winner_margin"
+    curve_request = _LOCAL
 
     def compute(self, ctx: FeatureContext) -> F32:
         """See the class docstring."""
-        return np.asarray((ctx.c2m - ctx.c1) / (ctx.curves.sum(axis=1) + constants.COST_EPS), dtype=np.float32)
+        total = ctx.curve_sum.astype(np.float32)
+        return np.asarray((ctx.c2m - ctx.c1) / (total + constants.COST_EPS), dtype=np.float32)
 
 
 @register
@@ -368,12 +446,13 @@ class MaximumLikelihood(Measure):
     """MLM: ``exp(-c1 / (2 s^2)) / sum_d exp(-c(d) / (2 s^2))``, s = MLM_SIGMA; in (0, 1]."""
 
     name = "maximum_likelihood"
+    curve_request = kernels.CurveRequest(exp_terms=((*_MLM_TERM, False),))
 
     def compute(self, ctx: FeatureContext) -> F32:
         """See the class docstring."""
         # Shifting every cost by c1 leaves the ratio unchanged and keeps the exponentials <= 1.
-        terms = np.exp(-(ctx.curves - ctx.c1[:, None]) / (2.0 * constants.MLM_SIGMA**2))
-        return np.asarray(1.0 / terms.sum(axis=1), dtype=np.float32)
+        total, _ = ctx.exp_sums(*_MLM_TERM)
+        return np.asarray(1.0 / total, dtype=np.float32)
 
 
 @register
@@ -381,11 +460,12 @@ class AttainableMaximumLikelihood(Measure):
     """AML: ``1 / sum_d exp(-(c(d) - c1)^2 / (2 s^2))``, s = AML_SIGMA; in (0, 1]."""
 
     name = "attainable_maximum_likelihood"
+    curve_request = kernels.CurveRequest(exp_terms=((*_AML_TERM, False),))
 
     def compute(self, ctx: FeatureContext) -> F32:
         """See the class docstring."""
-        terms = np.exp(-((ctx.curves - ctx.c1[:, None]) ** 2) / (2.0 * constants.AML_SIGMA**2))
-        return np.asarray(1.0 / terms.sum(axis=1), dtype=np.float32)
+        total, _ = ctx.exp_sums(*_AML_TERM)
+        return np.asarray(1.0 / total, dtype=np.float32)
 
 
 @register
@@ -393,12 +473,13 @@ class Perturbation(Measure):
     """PER: ``sum_{d != d1} exp(-(c1 - c(d))^2 / s^2)``, s = PER_SIGMA; 0 for a sharp unique minimum."""
 
     name = "perturbation"
+    curve_request = kernels.CurveRequest(exp_terms=((*_PER_TERM, False),))
 
     def compute(self, ctx: FeatureContext) -> F32:
         """See the class docstring."""
-        terms = np.exp(-((ctx.curves - ctx.c1[:, None]) ** 2) / constants.PER_SIGMA**2)
+        total, _ = ctx.exp_sums(*_PER_TERM)
         # The winner's own term is exp(0) = 1.
-        return np.asarray(terms.sum(axis=1) - 1.0, dtype=np.float32)
+        return np.asarray(total - 1.0, dtype=np.float32)
 
 
 @register
@@ -410,13 +491,15 @@ class NegativeEntropy(Measure):
     """
 
     name = "negative_entropy"
+    curve_request = kernels.CurveRequest(exp_terms=((*_NEM_TERM, True),))
 
     def compute(self, ctx: FeatureContext) -> F32:
         """See the class docstring."""
-        logits = -(ctx.curves - ctx.c1[:, None]) / constants.NEM_TEMPERATURE
-        log_norm = np.log(np.exp(logits).sum(axis=1, keepdims=True))
-        log_p = logits - log_norm
-        return np.asarray((np.exp(log_p) * log_p).sum(axis=1), dtype=np.float32)
+        # With e(d) = (c(d) - c1) / T and Z = sum_d exp(-e(d)): ln p(d) = -e(d) - ln Z, so
+        # sum_d p ln p = -sum_d e exp(-e) / Z - ln Z (costs shifted by c1 keep every exponential <= 1).
+        norm, moment = ctx.exp_sums(*_NEM_TERM, moment=True)
+        assert moment is not None
+        return np.asarray(-moment / norm - np.log(norm), dtype=np.float32)
 
 
 @register
@@ -428,6 +511,7 @@ class LeftRightDifference(Measure):
     """
 
     name = "left_right_difference"
+    curve_request = _RIGHT_MINIMUM
 
     def compute(self, ctx: FeatureContext) -> F32:
         """See the class docstring."""
@@ -444,11 +528,7 @@ class Curvature(Measure):
 
     def compute(self, ctx: FeatureContext) -> F32:
         """See the class docstring."""
-        n = np.arange(ctx.count)
-        below = ctx.curves[n, np.maximum(ctx.d1 - 1, 0)]
-        above = ctx.curves[n, np.minimum(ctx.d1 + 1, ctx.depth - 1)]
-        below = np.where(ctx.d1 == 0, above, below)
-        above = np.where(ctx.d1 == ctx.depth - 1, below, above)
+        below, above = ctx.curve_neighbours
         return np.asarray(below + above - 2.0 * ctx.c1, dtype=np.float32)
 
 
@@ -457,6 +537,7 @@ class DisparityAmbiguity(Measure):
     """DA: ``|d1 - d2m|``, pixels between the best and the second-best local minimum (0 when unique)."""
 
     name = "disparity_ambiguity"
+    curve_request = _LOCAL
 
     def compute(self, ctx: FeatureContext) -> F32:
         """See the class docstring."""
@@ -604,18 +685,7 @@ class DisparityEntropy(Measure):
     def compute(self, ctx: FeatureContext) -> F32:
         """See the class docstring."""
         bins = np.floor(ctx.disparity_zeroed / constants.ENTROPY_BIN_PX).astype(np.int32)
-        present = np.unique(bins[ctx.valid])
-        size = (self.window, self.window)
-        total = cv2.boxFilter(ctx.valid_f, cv2.CV_32F, size, normalize=False, borderType=cv2.BORDER_CONSTANT)
-        total_v = ctx.at_valid(total)
-        entropy = np.zeros(ctx.count, dtype=np.float32)
-        for b in present:
-            member = ((bins == b) & ctx.valid).astype(np.float32)
-            counts = cv2.boxFilter(member, cv2.CV_32F, size, normalize=False, borderType=cv2.BORDER_CONSTANT)
-            q = ctx.at_valid(counts) / total_v
-            with np.errstate(divide="ignore", invalid="ignore"):
-                entropy -= np.where(q > 0, q * np.log(q), 0.0).astype(np.float32)
-        return np.maximum(entropy, 0.0)
+        return ctx.at_valid(kernels.disparity_entropy(bins, ctx.valid, self.window))
 
 
 # ==================================================================== image measures
@@ -706,7 +776,10 @@ def compute_features(name: str, data: FeatureInput | FeatureContext) -> tuple[F3
     """
     ctx = data if isinstance(data, FeatureContext) else FeatureContext(data)
     measures = feature_set(name)
-    out = np.empty((ctx.count, len(measures)), dtype=np.float32)
+    for measure in measures:
+        ctx.prepare(measure.curve_request)
+    # Column-major: each measure fills one contiguous column, and the forest reads columns.
+    out = np.empty((ctx.count, len(measures)), dtype=np.float32, order="F")
     for j, measure in enumerate(measures):
         out[:, j] = measure.compute(ctx)
     # A non-finite feature would make the forest's comparisons arbitrary; clamp to large finite values.

@@ -1,4 +1,4 @@
-"""Random forest confidence: training with scikit-learn, model files as plain arrays, numpy inference.
+"""Random forest confidence: training with scikit-learn, model files as plain arrays, compiled inference.
 
 A model file is a NumPy ``.npz`` archive holding only numeric arrays and one
 JSON text (stored as a uint8 array); it is read with
@@ -25,13 +25,14 @@ import json
 import zipfile
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from selfcontra_ros.confidence import constants
+from selfcontra_ros.confidence import constants, kernels
 from selfcontra_ros.errors import SelfContraError
 
 __all__ = ["FORMAT", "ForestModel", "ModelError", "fit_forest", "load_model", "save_model"]
@@ -85,88 +86,33 @@ class ForestModel:
         """Number of feature columns the model expects."""
         return int(self.metadata.get("n_features", int(self.feature.max(initial=-1)) + 1))
 
-    def predict(self, features: NDArray[np.floating], *, engine: str = "auto") -> NDArray[np.float32]:
+    def predict(self, features: NDArray[np.floating]) -> NDArray[np.float32]:
         """Confidence of each sample: mean over trees of the reached leaf's positive share, in [0, 1].
+
+        A compiled traversal of the node arrays (:func:`kernels.forest_predict`,
+        parallel over samples); equal to scikit-learn's ``predict_proba`` of the
+        positive class for the same forest.
 
         Args:
             features: (N, n_features) feature rows (cast to float32 like scikit-learn).
-            engine: ``"numpy"`` (the reference: vectorised over samples and
-                trees, one tree level per step), ``"sklearn"`` (the same node
-                arrays handed to scikit-learn's compiled tree traversal; about
-                10x faster) or ``"auto"`` (scikit-learn when importable).
 
         Returns:
             (N,) float32 confidences.
         """
-        x = np.ascontiguousarray(features, dtype=np.float32)
+        # Not made C-contiguous: the kernel reads columns, so compute_features' column-major rows pass as they are.
+        x = np.asarray(features, dtype=np.float32)
         if x.ndim != 2 or x.shape[1] != self.n_features:
             raise ModelError(f"features must be (N, {self.n_features}), got shape {x.shape}")
         if x.shape[0] == 0:
             return np.zeros(0, dtype=np.float32)
-        if engine not in ("auto", "numpy", "sklearn"):
-            raise ModelError(f"engine must be 'auto', 'numpy' or 'sklearn', got {engine!r}")
-        if engine != "numpy":
-            trees = self._compiled_trees(required=engine == "sklearn")
-            if trees is not None:
-                votes = np.zeros(x.shape[0], dtype=np.float64)
-                for tree in trees:
-                    votes += tree.predict(x).reshape(x.shape[0], -1)[:, 1]
-                return np.asarray(votes / len(trees), dtype=np.float32)
-        return self._predict_numpy(x)
+        return kernels.forest_predict(x, self.tree_offsets, self.positive, self._layout)
 
-    def _predict_numpy(self, x: NDArray[np.float32]) -> NDArray[np.float32]:
-        n = x.shape[0]
-        # Global node index of every (tree, sample) pair, tree-major.
-        roots = self.tree_offsets[:-1].astype(np.int64)
-        node = np.repeat(roots, n)
-        sample = np.tile(np.arange(n, dtype=np.int64), self.n_trees)
-        base = np.repeat(roots, n)
-        active = np.flatnonzero(self.children_left[node] >= 0)
-        x_flat = x.ravel()
-        width = x.shape[1]
-        while active.size:
-            at = node[active]
-            go_left = x_flat[sample[active] * width + self.feature[at]] <= self.threshold[at]
-            child = np.where(go_left, self.children_left[at], self.children_right[at])
-            node[active] = base[active] + child
-            active = active[self.children_left[node[active]] >= 0]
-        votes = self.positive[node].reshape(self.n_trees, n)
-        return np.asarray(votes.mean(axis=0), dtype=np.float32)
-
-    def _compiled_trees(self, *, required: bool) -> list[Any] | None:
-        """scikit-learn ``Tree`` objects rebuilt from the node arrays (numbers only, no unpickling); cached."""
-        cached = getattr(self, "_trees", None)
-        if cached is not None:
-            return list(cached)
-        try:
-            from sklearn.tree import DecisionTreeClassifier
-            from sklearn.tree._tree import Tree
-
-            # The node record layout of the installed scikit-learn, taken from a throwaway tree.
-            probe = DecisionTreeClassifier(max_depth=1).fit([[0.0], [1.0]], [0, 1])
-            node_dtype = probe.tree_.__getstate__()["nodes"].dtype
-            trees = []
-            for t in range(self.n_trees):
-                lo, hi = int(self.tree_offsets[t]), int(self.tree_offsets[t + 1])
-                nodes = np.zeros(hi - lo, dtype=node_dtype)
-                nodes["left_child"] = self.children_left[lo:hi]
-                nodes["right_child"] = self.children_right[lo:hi]
-                nodes["feature"] = self.feature[lo:hi]
-                nodes["threshold"] = self.threshold[lo:hi]
-                nodes["n_node_samples"] = 1
-                nodes["weighted_n_node_samples"] = 1.0
-                share = self.positive[lo:hi]
-                values = np.ascontiguousarray(np.stack([1.0 - share, share], axis=1)[:, None, :])
-                tree = Tree(self.n_features, np.array([2], dtype=np.intp), 1)
-                depth = int(self.metadata.get("forest", {}).get("max_depth") or 64)
-                tree.__setstate__({"max_depth": depth, "node_count": hi - lo, "nodes": nodes, "values": values})
-                trees.append(tree)
-        except Exception as exc:  # any scikit-learn layout change falls back to the numpy reference
-            if required:
-                raise ModelError(f"cannot build scikit-learn trees from the model: {exc}") from exc
-            return None
-        self._trees = trees
-        return list(trees)
+    @cached_property
+    def _layout(self) -> kernels.ForestLayout:
+        """The traversal's node arrays, built on the first prediction (the node arrays are not changed after)."""
+        return kernels.forest_layout(
+            self.tree_offsets, self.children_left, self.children_right, self.feature, self.threshold
+        )
 
 
 def fit_forest(

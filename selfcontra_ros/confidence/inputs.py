@@ -3,8 +3,11 @@
 Cost-based measures need each pixel's cost curve whatever the query algorithm
 (DESIGN section 5): the census SGM hands over its own aggregated costs; every
 other algorithm (OpenCV SGBM/BM, an external disparity map) gets the
-package's census cost volume summed over a small window
-(:data:`~selfcontra_ros.confidence.constants.AGGREGATION_RADIUS`).
+package's census costs summed over a small window
+(:data:`~selfcontra_ros.confidence.constants.AGGREGATION_RADIUS`), handed
+over as the two census images (:class:`~selfcontra_ros.matching.census.WindowedCensusCosts`):
+the measures sum and reduce them a few rows at a time, so the HxWxD volume is
+never stored.
 """
 
 from __future__ import annotations
@@ -15,28 +18,30 @@ from numpy.typing import NDArray
 from selfcontra_ros.confidence import constants
 from selfcontra_ros.confidence.features import FeatureInput
 from selfcontra_ros.matching.base import DisparityPair, Matcher, MatcherParams, to_grey
-from selfcontra_ros.matching.census import (
-    CensusSGMMatcher,
-    box_cost_volume,
-    census_bits,
-    census_cost_volume,
-)
+from selfcontra_ros.matching.census import CensusSGMMatcher, WindowedCensusCosts, census_bits, windowed_census_costs
 
 __all__ = ["census_costs", "feature_input", "query_feature_input"]
 
 
 def census_costs(
     left: NDArray[np.uint8], right: NDArray[np.uint8], params: MatcherParams
-) -> tuple[NDArray[np.uint16], float]:
+) -> tuple[WindowedCensusCosts, float]:
     """Window-summed census costs over ``params``' disparity range and their normalising scale.
 
     Returns:
-        ``(costs, scale)``: HxWxD uint16 costs (bits summed over the window)
-        and the worst possible sum (bits x window area).
+        ``(costs, scale)``: the costs as the two census images
+        (:class:`~selfcontra_ros.matching.census.WindowedCensusCosts`: the
+        measures sum and reduce them a few rows at a time, so the HxWxD
+        uint16 volume, bits summed over the window, is never stored; its
+        ``volume()`` builds it when wanted) and the worst possible sum (bits
+        x window area).
     """
-    raw = census_cost_volume(to_grey(left), to_grey(right), params.num_disparities, min_disparity=params.min_disparity)
-    side = 2 * constants.AGGREGATION_RADIUS + 1
-    return box_cost_volume(raw, constants.AGGREGATION_RADIUS), float(census_bits() * side * side)
+    radius = constants.AGGREGATION_RADIUS
+    costs = windowed_census_costs(
+        to_grey(left), to_grey(right), params.num_disparities, radius, min_disparity=params.min_disparity
+    )
+    side = 2 * radius + 1
+    return costs, float(census_bits() * side * side)
 
 
 def feature_input(

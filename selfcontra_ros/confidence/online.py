@@ -19,13 +19,19 @@ invalid, i.e. not finite, not > 0 or outside the search range):
 
 **Cost.** LRD needs only the right disparity (a second matcher run, tens of
 milliseconds at KITTI size). A forest needs the feature set's measures, hence
-the census cost volume: at KITTI size (1226x370, 128 disparities, 2 cores)
-the census costs take about 1.9 s and the measures 0.9 s (``gcp``, the
-default: 8 features), 1.5 s (``ensemble``) or 1.7 s (``park``); at 320x96
-with 32 disparities, about 30 ms in all. A robot at 10 Hz therefore gets
-forest confidences off the subscription thread (the labeler node's
+the census costs: they are summed a few rows at a time inside the cost-curve
+statistics and never stored (:class:`~selfcontra_ros.matching.census.WindowedCensusCosts`),
+and features and forest touch only the valid pixels. At KITTI size (1226x370,
+128 disparities, about 380k valid pixels, ``bench/confidence_speed.py`` on 2
+cores shared with other jobs, load about 3) the default ``gcp`` set takes
+about 0.1-0.17 s for census and features and 0.06-0.12 s for this online
+forest (10 trees, depth 12), 1.3-1.55x the time of OpenCV SGBM with its right
+disparity; the paper's forest (20 trees, depth 20) 0.2-0.33 s instead;
+``ensemble`` and ``park`` 0.55-0.7 s of features. A robot at 10 Hz therefore
+gets forest confidences off the subscription thread (the labeler node's
 confidence worker), and the sample extraction of the labelled views runs in
-the trainer thread here, never on the caller's.
+the trainer thread here, never on the caller's; both run numba kernels and
+apply the thread cap of :func:`~selfcontra_ros.threads.limit_threads` first.
 
 **Reservoir.** Each labelled view contributes ``n = min(#positive, #negative,
 samples_per_view)`` samples of each class (:func:`~selfcontra_ros.confidence.training.balanced_indices`);
@@ -72,6 +78,8 @@ from selfcontra_ros.confidence.training import balanced_indices
 from selfcontra_ros.errors import SelfContraError
 from selfcontra_ros.labels import NEGATIVE, POSITIVE
 from selfcontra_ros.matching.base import MatcherParams, to_grey
+from selfcontra_ros.matching.census import WindowedCensusCosts
+from selfcontra_ros.threads import apply_thread_limit
 
 __all__ = [
     "LRD",
@@ -187,9 +195,9 @@ class ConfidenceFrame:
         path does not keep).
         """
         shape = self.disparity.shape
+        volume: NDArray[Any] | WindowedCensusCosts
         if with_costs:
-            costs, scale = census_costs(self.left, self.right, self.matcher)
-            volume: NDArray[Any] = costs
+            volume, scale = census_costs(self.left, self.right, self.matcher)
         else:
             volume = np.broadcast_to(np.zeros((1, 1, 1), np.uint16), (*shape, self.matcher.num_disparities))
             scale = 1.0
@@ -439,6 +447,8 @@ class OnlineConfidence:
         thread.join(timeout)
 
     def _trainer(self) -> None:
+        # numba's and OpenMP's thread counts are per thread: this one starts with every core otherwise.
+        apply_thread_limit()
         while True:
             item = self._queue.get()
             try:

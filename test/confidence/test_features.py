@@ -264,3 +264,42 @@ def test_registry_adds_a_measure_by_one_class_and_refuses_duplicates() -> None:
         make_measure("no_such_measure")
     with pytest.raises(SelfContraError):
         make_measure("disparity_variance", {"window": 4})
+
+
+def test_one_cost_pass_per_feature_set_and_census_costs_equal_their_volume(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A feature set reads its cost curves in one pass; a reused context adds one; census costs need no volume."""
+    from dataclasses import replace
+
+    from selfcontra_ros.confidence import kernels
+    from selfcontra_ros.matching.census import windowed_census_costs
+
+    rng = np.random.default_rng(2)
+    h, w, depth = 20, 40, 12
+    left = rng.integers(0, 255, (h, w)).astype(np.uint8)
+    right = np.roll(left, -3, axis=1)
+    d = rng.uniform(1, 11, (h, w)).astype(np.float32)
+    d[::4, ::3] = np.nan
+    d[7] = np.nan  # a row without a valid pixel
+    census = windowed_census_costs(left, right, depth, 2, min_disparity=0)
+    lazy = FeatureInput(left, right, d, d.copy(), census, 1550.0)
+    stored = replace(lazy, costs=census.volume())
+    passes: list[kernels.CurveRequest] = []
+    real = kernels.curve_statistics
+
+    def counted(*args: object, **kwargs: object) -> kernels.CurveStatistics:
+        passes.append(kwargs["request"])  # type: ignore[arg-type]
+        return real(*args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(kernels, "curve_statistics", counted)
+    for name in ("gcp", "park", "ensemble"):
+        passes.clear()
+        expected, _ = compute_features(name, stored)
+        assert len(passes) == 1, name
+        got, ctx = compute_features(name, lazy)
+        np.testing.assert_array_equal(got, expected)
+        # The same context for another set: one more pass, for what the first did not compute.
+        passes.clear()
+        other = "ensemble" if name == "gcp" else "gcp"
+        again, _ = compute_features(other, ctx)
+        assert len(passes) <= 1
+        np.testing.assert_array_equal(again, compute_features(other, stored)[0])

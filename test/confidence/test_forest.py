@@ -21,14 +21,13 @@ def data(n: int = 600, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     return x, y
 
 
-def test_numpy_predictor_matches_scikit_learn_and_survives_a_round_trip(tmp_path: Path) -> None:
+def test_predictor_matches_scikit_learn_and_survives_a_round_trip(tmp_path: Path) -> None:
     x, y = data()
     model = fit_forest(x, y, {"feature_set": "test"}, forest=SMALL)
     reference = RandomForestClassifier(criterion="entropy", random_state=0, **SMALL).fit(x, y.astype(np.int8))
     x_test, _ = data(300, seed=1)
     expected = reference.predict_proba(x_test)[:, 1]
-    np.testing.assert_allclose(model.predict(x_test, engine="numpy"), expected, atol=1e-6)
-    np.testing.assert_allclose(model.predict(x_test, engine="sklearn"), expected, atol=1e-6)
+    np.testing.assert_allclose(model.predict(x_test), expected, atol=1e-6)
     path = save_model(model, tmp_path / "model.npz")
     loaded = load_model(path)
     np.testing.assert_array_equal(loaded.predict(x_test), model.predict(x_test))

@@ -182,3 +182,29 @@ def test_model_out_and_model_in_round_trip(labelled_frames: list, tmp_path: Path
     np.testing.assert_array_equal(loaded.confidence(frame), trainer.confidence(frame))
     with pytest.raises(ModelError, match="feature set"):
         OnlineConfidence(ConfidenceParams(feature_set="park", model_in=str(path)), background=False)
+
+
+def test_trainer_thread_runs_under_the_thread_cap(labelled_frames: list, monkeypatch: pytest.MonkeyPatch) -> None:
+    """numba's thread count is per thread: the trainer re-applies the recorded cap before its first view."""
+    import numba
+
+    from selfcontra_ros import threads
+
+    if numba.config.NUMBA_NUM_THREADS < 2:  # type: ignore[attr-defined]
+        pytest.skip("numba runs a single thread here: a cap of 1 would change nothing")
+    # The cap as limit_threads(1) records it, without changing this thread's pools.
+    monkeypatch.setattr(threads, "_cap", 1)
+    seen: list[tuple[str, int]] = []
+
+    def learn(self: OnlineConfidence, frame: ConfidenceFrame, labels: np.ndarray) -> None:
+        seen.append((threading.current_thread().name, numba.get_num_threads()))
+
+    monkeypatch.setattr(OnlineConfidence, "_learn", learn)
+    online = OnlineConfidence(ConfidenceParams(**TINY), background=True)
+    try:
+        frame, labels = labelled_frames[0]
+        assert online.add_labelled(frame, labels)
+        assert online.wait_idle(30.0)
+    finally:
+        online.close()
+    assert seen == [("selfcontra_confidence_trainer", 1)]

@@ -7,13 +7,15 @@ import itertools
 import numpy as np
 import pytest
 
-from selfcontra_ros.matching.base import MatcherParams, make_matcher
+from selfcontra_ros.matching.base import MatcherError, MatcherParams, make_matcher
 from selfcontra_ros.matching.census import (
     CensusSGMMatcher,
     aggregate_sgm,
+    box_cost_volume,
     census_bits,
     census_cost_volume,
     census_transform,
+    census_window_cost_volume,
     hamming,
     right_cost_volume,
 )
@@ -116,3 +118,69 @@ def test_census_sgm_recovers_a_constant_shift_both_ways() -> None:
     assert np.all(result.pair.right[:, 1:60] == 7)
     only_left = matcher.compute(left, right, with_right=False)
     assert only_left.right is None
+
+
+def reference_cost_volume(
+    left: np.ndarray, right: np.ndarray, depth: int, lo: int, window: tuple[int, int]
+) -> np.ndarray:
+    """Hamming distances of census strings built bit by bit, pixel by pixel."""
+    cl, cr = census_transform(left, window), census_transform(right, window)
+    height, width = left.shape
+    out = np.full((height, width, depth), census_bits(window), dtype=np.uint8)
+    for v, u, k in itertools.product(range(height), range(width), range(depth)):
+        x = u - (lo + k)
+        if 0 <= x < width:
+            out[v, u, k] = bin(int(cl[v, u]) ^ int(cr[v, x])).count("1")
+    return out
+
+
+@pytest.mark.parametrize(("depth", "lo"), [(6, 0), (5, -2), (4, 3), (3, 12)])
+def test_cost_volume_kernel_matches_the_direct_definition(depth: int, lo: int) -> None:
+    rng = np.random.default_rng(3)
+    left = rng.integers(0, 8, (5, 10)).astype(np.uint8)
+    right = rng.integers(0, 8, (5, 10)).astype(np.uint8)
+    window = (3, 5)
+    np.testing.assert_array_equal(
+        census_cost_volume(left, right, depth, min_disparity=lo, window=window),
+        reference_cost_volume(left, right, depth, lo, window),
+    )
+
+
+@pytest.mark.parametrize(("dtype", "radius"), [(np.uint8, 1), (np.uint8, 2), (np.uint16, 2), (np.int32, 1)])
+def test_box_cost_volume_sums_the_edge_padded_window(dtype: type, radius: int) -> None:
+    rng = np.random.default_rng(4)
+    volume = rng.integers(0, 63, (4, 7, 3)).astype(dtype)
+    padded = np.pad(volume.astype(np.int64), ((radius, radius), (radius, radius), (0, 0)), mode="edge")
+    side = 2 * radius + 1
+    expected = np.zeros(volume.shape, np.int64)
+    for v, u in itertools.product(range(4), range(7)):
+        expected[v, u] = padded[v : v + side, u : u + side].sum(axis=(0, 1))
+    got = box_cost_volume(volume, radius)
+    assert got.dtype == np.uint16
+    np.testing.assert_array_equal(got, expected)
+
+
+def test_box_cost_volume_refuses_sums_that_overflow() -> None:
+    with pytest.raises(MatcherError, match="fit uint16"):
+        box_cost_volume(np.full((3, 3, 2), 60000, np.uint16), 1)
+    with pytest.raises(MatcherError, match="radius"):
+        box_cost_volume(np.zeros((3, 3, 2), np.uint8), -1)
+
+
+@pytest.mark.parametrize(("radius", "lo", "shape"), [(2, 0, (9, 14)), (1, -2, (5, 8)), (0, 3, (4, 9)), (2, 1, (2, 9))])
+def test_windowed_census_costs_equal_the_box_sum_of_the_raw_volume(
+    radius: int, lo: int, shape: tuple[int, int]
+) -> None:
+    rng = np.random.default_rng(5)
+    left = rng.integers(0, 8, shape).astype(np.uint8)
+    right = rng.integers(0, 8, shape).astype(np.uint8)
+    window = (3, 5)
+    raw = reference_cost_volume(left, right, 6, lo, window).astype(np.int64)
+    padded = np.pad(raw, ((radius, radius), (radius, radius), (0, 0)), mode="edge")
+    side = 2 * radius + 1
+    expected = np.zeros(raw.shape, np.int64)
+    for v, u in itertools.product(range(shape[0]), range(shape[1])):
+        expected[v, u] = padded[v : v + side, u : u + side].sum(axis=(0, 1))
+    got = census_window_cost_volume(left, right, 6, radius, min_disparity=lo, window=window)
+    assert got.dtype == np.uint16
+    np.testing.assert_array_equal(got, expected)
