@@ -265,6 +265,51 @@ def tolerance_sq_scalar(
     return mahalanobis_sq_sum_scalar(xq, yq, zq, xr, yr, zr, r_qr, dx, dy, dz, fx, fy, baseline, sigma_px)
 
 
+#: Safety factor of the bound in :func:`tolerance_sq_capped_scalar`: the bound must reject only what the exact test
+#: rejects, despite ``u`` stored in float32 (relative error 6e-8) and the rounding of the 3x3 inversions (relative
+#: error about condition number x 1e-16, the condition of these covariances staying far below 1e8).
+_BOUND_SAFETY = 1.01
+
+
+@njit(cache=True, error_model="numpy")
+def tolerance_sq_capped_scalar(
+    mode: int,
+    xq: float,
+    yq: float,
+    zq: float,
+    xr: float,
+    yr: float,
+    zr: float,
+    xrq: float,
+    yrq: float,
+    zrq: float,
+    ref_from_query: np.ndarray,
+    u_q: float,
+    u_r: float,
+    fx: float,
+    fy: float,
+    baseline: float,
+    sigma_px: float,
+    cap: float,
+) -> float:
+    """:func:`tolerance_sq_scalar`, or ``inf`` when a cheap bound proves it larger than ``cap``.
+
+    Every reading is a quadratic form ``d^T S d`` of the offset ``d`` whose
+    matrix ``S`` (an information matrix, or the inverse of a sum of
+    covariances) has its smallest eigenvalue at least ``1 / (u_q + u_r)``, so
+    ``m2 >= |d|^2 / (u_q + u_r)``. A lookup that lands on another surface is
+    rejected by that bound without the three 3x3 inversions of the ``sum``
+    reading; compared with any limit up to ``cap``, the result decides as the
+    exact value would. Non-finite inputs fall through to the exact test.
+    """
+    dx, dy, dz = xrq - xq, yrq - yq, zrq - zq
+    if dx * dx + dy * dy + dz * dz > cap * (np.float64(u_q) + np.float64(u_r)) * _BOUND_SAFETY:
+        return np.inf
+    return tolerance_sq_scalar(
+        mode, xq, yq, zq, xr, yr, zr, xrq, yrq, zrq, ref_from_query, u_q, u_r, fx, fy, baseline, sigma_px
+    )
+
+
 @njit(cache=True, error_model="numpy")
 def transform_scalar(t: np.ndarray, x: float, y: float, z: float) -> tuple[float, float, float]:
     """``t`` (4x4 rigid transform) applied to one point."""
@@ -320,9 +365,9 @@ def augmented_margin_scalar(u_aug: float, sigma_max: float, reading: int) -> flo
 
 
 # ---------------------------------------------------------------------------------------------------------------------
-# Array kernels over rows (the numpy-facing wrappers call these with contiguous arrays). Serial: Stage 2 calls
-# them hundreds of times per view on a few hundred to a few hundred thousand rows, where starting threads costs
-# more than it saves (and much more when other processes hold the cores). The fused stage kernels are parallel.
+# Array kernels over rows (the numpy-facing wrappers call these with contiguous arrays). Serial: callers use them
+# on a few hundred to a few hundred thousand rows, where starting threads costs more than it saves (and much more
+# when other processes hold the cores). The fused stage kernels, which all stages now use, are parallel.
 
 
 @njit(cache=True, error_model="numpy")
@@ -623,6 +668,23 @@ def _angle_surely_below(
     )
 
 
+@njit(cache=True, error_model="numpy")
+def _angle_surely_above(
+    x: float, y: float, z: float, centre_a: np.ndarray, centre_b: np.ndarray, cos_accept: float
+) -> bool:
+    """Cheap pre-test: ``cos(alpha) < cos_accept`` without ``acos`` or square roots; only a sure acceptance
+    (``False`` when in doubt, e.g. a point at a centre), so the exact angle may wait until a bin is needed."""
+    tax, tay, taz = centre_a[0] - x, centre_a[1] - y, centre_a[2] - z
+    tbx, tby, tbz = centre_b[0] - x, centre_b[1] - y, centre_b[2] - z
+    norms = (tax * tax + tay * tay + taz * taz) * (tbx * tbx + tby * tby + tbz * tbz)
+    if not norms > 0:
+        return False
+    dot = tax * tbx + tay * tby + taz * tbz
+    if cos_accept > 0:
+        return dot <= 0 or dot * dot < cos_accept * cos_accept * norms
+    return dot < 0 and dot * dot > cos_accept * cos_accept * norms
+
+
 @njit(cache=True, error_model="numpy", parallel=True)
 def support_bits_kernel(
     q_points: np.ndarray,
@@ -660,6 +722,9 @@ def support_bits_kernel(
     limit = sigma_max * sigma_max
     # Cosine above which the angle is below alpha_min beyond any rounding doubt (on forward motion most pixels).
     cos_reject = math.cos(math.radians(alpha_min_deg)) + 1e-9
+    # Cosine below which the angle is above alpha_min beyond any rounding doubt: the exact angle (acos) is then
+    # needed only for the bin of a supporting measurement.
+    cos_accept = math.cos(math.radians(alpha_min_deg)) - 1e-9
     for i in prange(n):
         if not q_valid[i]:
             continue
@@ -667,21 +732,45 @@ def support_bits_kernel(
         # The angle first: it needs no memory access, and on forward motion it rejects most pixels.
         if _angle_surely_below(xq, yq, zq, centre_r, centre_q, cos_reject):
             continue
-        alpha = observation_angle_scalar(
-            xq, yq, zq, centre_r[0], centre_r[1], centre_r[2], centre_q[0], centre_q[1], centre_q[2]
-        )
-        if not alpha > alpha_min_deg:
-            continue
+        above = _angle_surely_above(xq, yq, zq, centre_r, centre_q, cos_accept)
+        alpha = 0.0
+        if not above:
+            alpha = observation_angle_scalar(
+                xq, yq, zq, centre_r[0], centre_r[1], centre_r[2], centre_q[0], centre_q[1], centre_q[2]
+            )
+            if not alpha > alpha_min_deg:
+                continue
         x, y, z = transform_scalar(ref_from_query, xq, yq, zq)
         j = project_scalar(x, y, z, fx, fy, cx, cy, width, height)
         if j < 0 or not r_valid[j]:
             continue
         xr, yr, zr = np.float64(r_points[j, 0]), np.float64(r_points[j, 1]), np.float64(r_points[j, 2])
         xrq, yrq, zrq = transform_scalar(query_from_ref, xr, yr, zr)
-        m2 = tolerance_sq_scalar(
-            mode, xq, yq, zq, xr, yr, zr, xrq, yrq, zrq, ref_from_query, q_u[i], r_u[j], fx, fy, baseline, sigma_px
+        m2 = tolerance_sq_capped_scalar(
+            mode,
+            xq,
+            yq,
+            zq,
+            xr,
+            yr,
+            zr,
+            xrq,
+            yrq,
+            zrq,
+            ref_from_query,
+            q_u[i],
+            r_u[j],
+            fx,
+            fy,
+            baseline,
+            sigma_px,
+            limit,
         )
         if m2 <= limit:
+            if above:
+                alpha = observation_angle_scalar(
+                    xq, yq, zq, centre_r[0], centre_r[1], centre_r[2], centre_q[0], centre_q[1], centre_q[2]
+                )
             # alpha > alpha_min > 0 here, so truncation is the floor.
             b = min(int(alpha / alpha_min_deg), max_bins - 1)
             bits[i] = np.uint64(1) << np.uint64(b)
@@ -690,6 +779,8 @@ def support_bits_kernel(
 
 @njit(cache=True, error_model="numpy", parallel=True)
 def splat_into_pending(
+    pixel: np.ndarray,
+    depth: np.ndarray,
     pending: np.ndarray,
     ref_points: np.ndarray,
     ref_valid: np.ndarray,
@@ -700,14 +791,14 @@ def splat_into_pending(
     cy: float,
     width: int,
     height: int,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Query pixel (-1 if none or not pending) and query depth (metres) of every reference point, ``(V, N)`` each."""
+) -> None:
+    """Fill ``pixel`` (query pixel, -1 if none or not pending) and ``depth`` (metres in the query, set only where
+    ``pixel >= 0``) of every reference point, ``(V, N)`` each, in place (the caller's buffers are reused)."""
     n_refs, n = ref_valid.shape
-    pixel = np.full((n_refs, n), -1, dtype=np.int32)
-    depth = np.empty((n_refs, n))
     for k in range(n_refs):
         t = query_from_ref[k]
         for s in prange(n):
+            pixel[k, s] = -1
             if ref_valid[k, s]:
                 x, y, z = transform_scalar(
                     t, np.float64(ref_points[k, s, 0]), np.float64(ref_points[k, s, 1]), np.float64(ref_points[k, s, 2])
@@ -716,7 +807,6 @@ def splat_into_pending(
                 if p >= 0 and pending[p]:
                     pixel[k, s] = p
                     depth[k, s] = z
-    return pixel, depth
 
 
 @njit(cache=True, error_model="numpy")
@@ -1050,7 +1140,7 @@ def agrees_nearby_scalar(
             k = r * width + c
             if not q_valid[k]:
                 continue
-            m2 = tolerance_sq_scalar(
+            m2 = tolerance_sq_capped_scalar(
                 mode,
                 np.float64(q_points[k, 0]),
                 np.float64(q_points[k, 1]),
@@ -1068,6 +1158,7 @@ def agrees_nearby_scalar(
                 fy,
                 baseline,
                 sigma_px,
+                limit_sq,
             )
             if m2 <= limit_sq:
                 return True
@@ -1124,6 +1215,7 @@ def lookup_votes_kernel(
     reference by reference. Each pixel writes only its own entries.
     """
     n = q_valid.shape[0]
+    cap = max(positive_sq, negative_sq)  # beyond both limits the exact distance changes nothing
     for i in prange(n):
         if not q_valid[i]:
             continue
@@ -1139,8 +1231,25 @@ def lookup_votes_kernel(
             if accurate or negatives_from_any:
                 xr, yr, zr = np.float64(r_points[j, 0]), np.float64(r_points[j, 1]), np.float64(r_points[j, 2])
                 xrq, yrq, zrq = transform_scalar(query_from_ref, xr, yr, zr)
-                m2 = tolerance_sq_scalar(
-                    mode, xq, yq, zq, xr, yr, zr, xrq, yrq, zrq, ref_from_query, u_q, u_r, fx, fy, baseline, sigma_px
+                m2 = tolerance_sq_capped_scalar(
+                    mode,
+                    xq,
+                    yq,
+                    zq,
+                    xr,
+                    yr,
+                    zr,
+                    xrq,
+                    yrq,
+                    zrq,
+                    ref_from_query,
+                    u_q,
+                    u_r,
+                    fx,
+                    fy,
+                    baseline,
+                    sigma_px,
+                    cap,
                 )
                 far = m2 > negative_sq
                 in_front = math.sqrt(x * x + y * y + z * z) < math.sqrt(xr * xr + yr * yr + zr * zr)
@@ -1215,8 +1324,25 @@ def free_space_votes_kernel(
         xsq, ysq, zsq = transform_scalar(query_from_ref, xs, ys, zs)
         if not zsq < zq:
             continue
-        m2 = tolerance_sq_scalar(
-            mode, xq, yq, zq, xs, ys, zs, xsq, ysq, zsq, ref_from_query, u_q, u_s, fx, fy, baseline, sigma_px
+        m2 = tolerance_sq_capped_scalar(
+            mode,
+            xq,
+            yq,
+            zq,
+            xs,
+            ys,
+            zs,
+            xsq,
+            ysq,
+            zsq,
+            ref_from_query,
+            u_q,
+            u_s,
+            fx,
+            fy,
+            baseline,
+            sigma_px,
+            free_space_sq,
         )
         if m2 <= free_space_sq:
             continue

@@ -47,9 +47,9 @@ from numpy.typing import NDArray
 
 from selfcontra_ros.geometry import StereoCamera
 from selfcontra_ros.labels import NEGATIVE, POSITIVE, UNKNOWN
-from selfcontra_ros.projection import lookup, splat_nearest, transform
-from selfcontra_ros.stages._common import tolerance_sq, within_tolerance
-from selfcontra_ros.stages.support import observation_angle_deg
+from selfcontra_ros.projection import transform
+from selfcontra_ros.stages import kernels
+from selfcontra_ros.stages._common import tolerance_code
 from selfcontra_ros.window import View, support_count
 
 __all__ = ["NEGATIVE_VOTERS", "VotingResult", "consistency_voting", "fattening_band"]
@@ -79,162 +79,92 @@ class VotingResult:
 
 
 def _reference_votes(
+    vote_sum: NDArray[np.float64],
+    voted: NDArray[np.bool_],
     query: View,
     ref: View,
     camera: StereoCamera,
-    q_index: NDArray[np.int64],
-    x_q: NDArray[np.float64],
     *,
     sigma_max: float,
     sigma_px: float,
-    tolerance: str,
+    mode: int,
+    positive_sigma: float,
+    negative_sigma: float,
     min_angle_deg: float,
     negatives_from_any: bool,
     free_space: bool,
-    free_space_neighbourhood: int = 0,
-    positive_sigma: float | None = None,
-    negative_sigma: float | None = None,
-) -> NDArray[np.float64]:
-    """The vote (0 for none) of one reference view for each valid query pixel ``q_index``.
+    free_space_neighbourhood: int,
+) -> None:
+    """Add the vote (if any) of one reference view to every valid query pixel, in place (flat ``(H*W,)``).
 
     A lookup within ``positive_sigma`` votes positive, one beyond ``negative_sigma`` may vote for an
-    occlusion; one in between casts no vote (both default to ``sigma_max``, the paper). The splat's
-    free-space test keeps ``sigma_max``.
+    occlusion; one in between casts no vote. The splat's free-space test keeps ``sigma_max``. Three compiled
+    passes: the lookup (:func:`selfcontra_ros.stages.kernels.lookup_votes_kernel`), then, for the pixels it left
+    undecided, the z-buffer splat of the supported reference points
+    (:func:`selfcontra_ros.stages.kernels.splat_supported_kernel`) and the free-space test
+    (:func:`selfcontra_ros.stages.kernels.free_space_votes_kernel`).
     """
-    pos_sq = (sigma_max if positive_sigma is None else positive_sigma) ** 2
-    neg_sq = (sigma_max if negative_sigma is None else negative_sigma) ** 2
-    votes = np.zeros(q_index.size)
-    u_q = query.u[q_index].astype(np.float64)
     ref_from_query = ref.from_view(query)
     query_from_ref = query.from_view(ref)
-    ref_support = support_count(ref.support_bits)
-
-    # Lookup: positive or occlusion.
-    found = lookup(x_q, ref_from_query, camera, ref.valid)
-    r_index = found.ref_index
-    u_r = ref.u[r_index].astype(np.float64)
-    accurate = u_r < u_q
-    eligible = found.ok & (ref_support[r_index] >= 1) & (accurate | negatives_from_any)
-    sel = np.flatnonzero(eligible)
-    accurate = accurate[sel]
-    x_r = ref.points[r_index[sel]].astype(np.float64)
-    m2 = tolerance_sq(
-        tolerance, x_q[sel], x_r, transform(query_from_ref, x_r), ref_from_query, u_q[sel], u_r[sel], camera, sigma_px
+    geometry = (camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height)
+    # Both mean centres in the query's left frame, for the observation angle of min_angle_deg.
+    centre_q = np.array([0.5 * camera.baseline, 0.0, 0.0])
+    centre_r = transform(query.pose_inv, ref.centre[None, :])[0]
+    pending = np.zeros(query.valid.size, dtype=bool)
+    kernels.lookup_votes_kernel(
+        vote_sum,
+        voted,
+        pending,
+        query.points,
+        query.valid,
+        query.u,
+        ref.points,
+        ref.valid,
+        ref.u,
+        ref.support_bits,
+        ref_from_query,
+        query_from_ref,
+        centre_r,
+        centre_q,
+        *geometry,
+        camera.baseline,
+        float(sigma_px),
+        mode,
+        float(positive_sigma) ** 2,
+        float(negative_sigma) ** 2,
+        float(min_angle_deg),
+        bool(negatives_from_any),
     )
-    close = m2 <= pos_sq
-    far = m2 > neg_sq
-    in_front = np.linalg.norm(found.points_in_ref[sel], axis=-1) < np.linalg.norm(x_r, axis=-1)
-    weight = ref_support[r_index[sel]].astype(np.float64) / np.sqrt(u_r[sel])
-    wide = np.ones(sel.size, dtype=bool)
-    if min_angle_deg > 0:
-        # A reference seen from nearly the query's direction repeats the query's systematic error (same
-        # image patches, same matching ambiguity), so its agreement is no evidence; its contradictions are.
-        centre_q = np.array([0.5 * camera.baseline, 0.0, 0.0])
-        centre_r = transform(query.pose_inv, ref.centre[None, :])[0]
-        wide = observation_angle_deg(x_q[sel], centre_r, centre_q) > min_angle_deg
-    positive = close & accurate
-    votes[sel] = np.where(positive, np.where(wide, weight, 0.0), np.where(far & in_front, -weight, 0.0))
-    # A lookup that agrees has decided this reference's vote even when it does not count, and so has one
-    # that agrees only roughly (between the two tolerances): no splat vote then.
-    decided = np.zeros(q_index.size, dtype=bool)
-    decided[sel] = (~far & accurate) | (far & in_front)
-
     if not free_space:
-        return votes
-    # Splat: free-space violation where the lookup cast no vote.
-    supported = np.flatnonzero(ref.valid & (ref_support >= 1))
-    source = splat_nearest(ref.points[supported], supported, query_from_ref, camera)[q_index]
-    sel = np.flatnonzero(~decided & (source >= 0))
-    s_index = source[sel]
-    u_s = ref.u[s_index].astype(np.float64)
-    more_accurate = (u_s < u_q[sel]) | negatives_from_any
-    sel, s_index, u_s = sel[more_accurate], s_index[more_accurate], u_s[more_accurate]
-    x_s = ref.points[s_index].astype(np.float64)
-    x_s_in_q = transform(query_from_ref, x_s)
-    # Free-space violations keep sigma_max: the query point lies behind the reference's surface, where its
-    # linearised covariance (u grows as depth^4) is wide, so a wider test would miss most of them.
-    close = within_tolerance(
-        tolerance, x_q[sel], x_s, x_s_in_q, ref_from_query, u_q[sel], u_s, camera, sigma_px, sigma_max
+        return
+    # The z-buffer only for the pixels the lookup left undecided.
+    source = kernels.splat_supported_kernel(ref.points, ref.valid, ref.support_bits, query_from_ref, pending, *geometry)
+    kernels.free_space_votes_kernel(
+        vote_sum,
+        voted,
+        pending,
+        source,
+        query.points,
+        query.valid,
+        query.u,
+        ref.points,
+        ref.u,
+        ref.support_bits,
+        ref_from_query,
+        query_from_ref,
+        camera.width,
+        camera.height,
+        camera.fx,
+        camera.fy,
+        camera.baseline,
+        float(sigma_px),
+        mode,
+        # Free-space violations keep sigma_max: the query point lies behind the reference's surface, where its
+        # linearised covariance (u grows as depth^4) is wide, so a wider test would miss most of them.
+        float(sigma_max) * float(sigma_max),
+        bool(negatives_from_any),
+        int(free_space_neighbourhood),
     )
-    violation = ~close & (x_s_in_q[:, 2] < x_q[sel, 2])
-    if free_space_neighbourhood > 0:
-        # A splatted point that agrees with a query measurement a pixel or two away lies on the query's own
-        # surface: an object outline seen from a slightly different direction (or rounded differently into
-        # pixels), not evidence that the query's ray passes through occupied space.
-        hit = np.flatnonzero(violation)
-        outline = _agrees_nearby(
-            query,
-            camera,
-            q_index[sel[hit]],
-            x_s[hit],
-            x_s_in_q[hit],
-            u_s[hit],
-            ref_from_query,
-            radius=free_space_neighbourhood,
-            tolerance=tolerance,
-            sigma_px=sigma_px,
-            sigma_max=sigma_max,
-        )
-        violation[hit[outline]] = False
-    votes[sel[violation]] = -(ref_support[s_index[violation]].astype(np.float64) / np.sqrt(u_s[violation]))
-    return votes
-
-
-def _agrees_nearby(
-    query: View,
-    camera: StereoCamera,
-    pixels: NDArray[np.int64],
-    x_s: NDArray[np.float64],
-    x_s_in_q: NDArray[np.float64],
-    u_s: NDArray[np.float64],
-    ref_from_query: NDArray[np.float64],
-    *,
-    radius: int,
-    tolerance: str,
-    sigma_px: float,
-    sigma_max: float,
-) -> NDArray[np.bool_]:
-    """Whether each splatted reference point agrees with a valid query measurement near its query pixel.
-
-    Args:
-        query: the query view.
-        camera: the stereo camera of both views.
-        pixels: flat query pixel each splatted point fell into (``(K,)``).
-        x_s: the splatted points in the reference left frame (``(K, 3)``, metres).
-        x_s_in_q: the same points in the query left frame (``(K, 3)``, metres).
-        u_s: their largest covariance eigenvalues (m^2).
-        ref_from_query: 4x4 transform from the query's to the reference's left frame.
-        radius: half side of the square neighbourhood, pixels (the pixel itself is not compared again).
-        tolerance: reading of "within ``sigma_max``", as for the votes.
-        sigma_px: image noise, pixels.
-        sigma_max: tolerance, standard deviations.
-    """
-    agrees = np.zeros(pixels.size, dtype=bool)
-    row, col = np.divmod(pixels, camera.width)
-    for dr in range(-radius, radius + 1):
-        for dc in range(-radius, radius + 1):
-            if dr == 0 and dc == 0:
-                continue  # the pixel itself was compared by the caller
-            r, c = row + dr, col + dc
-            inside = (r >= 0) & (r < camera.height) & (c >= 0) & (c < camera.width)
-            neighbour = np.where(inside, r * camera.width + c, 0)
-            test = np.flatnonzero(inside & query.valid[neighbour] & ~agrees)
-            if test.size == 0:
-                continue
-            near = neighbour[test]
-            agrees[test] = within_tolerance(
-                tolerance,
-                query.points[near].astype(np.float64),
-                x_s[test],
-                x_s_in_q[test],
-                ref_from_query,
-                query.u[near].astype(np.float64),
-                u_s[test],
-                camera,
-                sigma_px,
-                sigma_max,
-            )
-    return agrees
 
 
 def fattening_band(
@@ -316,33 +246,28 @@ def consistency_voting(
             ``sigma_max`` (the paper). Between the two: no vote. Free-space violations keep ``sigma_max``.
     """
     n = query.valid.size
-    q_index = np.flatnonzero(query.valid)
-    x_q = query.points[q_index].astype(np.float64)
-    vote_sum = np.zeros(q_index.size)
-    voted = np.zeros(q_index.size, dtype=bool)
+    mode = tolerance_code(tolerance)
+    full_sum = np.zeros(n)
+    full_voted = np.zeros(n, dtype=bool)
+    # One reference after the other, as the paper sums votes: the sums do not depend on how pixels are split
+    # between threads.
     for ref in refs:
-        votes = _reference_votes(
+        _reference_votes(
+            full_sum,
+            full_voted,
             query,
             ref,
             camera,
-            q_index,
-            x_q,
             sigma_max=sigma_max,
             sigma_px=sigma_px,
-            tolerance=tolerance,
+            mode=mode,
+            positive_sigma=sigma_max if positive_sigma is None else positive_sigma,
+            negative_sigma=sigma_max if negative_sigma is None else negative_sigma,
             min_angle_deg=min_angle_deg,
             negatives_from_any=negative_voters == "any",
             free_space=free_space_votes,
             free_space_neighbourhood=free_space_neighbourhood,
-            positive_sigma=positive_sigma,
-            negative_sigma=negative_sigma,
         )
-        vote_sum += votes
-        voted |= votes != 0
-    full_sum = np.zeros(n)
-    full_sum[q_index] = vote_sum
-    full_voted = np.zeros(n, dtype=bool)
-    full_voted[q_index] = voted
     labels = np.full(n, UNKNOWN, dtype=np.uint8)
     positive = full_voted & (full_sum > 0)
     if min_query_support > 0:
