@@ -62,9 +62,7 @@ import argparse
 import json
 import math
 import os
-import signal
 import struct
-import subprocess
 import sys
 import tempfile
 import time
@@ -81,6 +79,7 @@ from selfcontra_ros.bags.kitti2mcap import kitti_to_mcap
 from selfcontra_ros.bags.reader import open_bag
 from selfcontra_ros.datasets.synthetic import write_sequence
 from selfcontra_ros.resources import config_file
+from selfcontra_ros.ros.environment import start_python, stop_process
 
 _MIB = 1024 * 1024
 # Environment variables that could make a participant talk to other machines.
@@ -199,24 +198,6 @@ class _Monitor:
         self.stats = json.loads(msg.data)
 
 
-def _stop(process: subprocess.Popen[bytes] | None, timeout: float = 15.0) -> None:
-    """SIGINT, then SIGKILL after ``timeout`` s, to this one process."""
-    if process is None or process.poll() is not None:
-        return
-    process.send_signal(signal.SIGINT)
-    try:
-        process.wait(timeout=timeout)
-    except subprocess.TimeoutExpired:
-        process.kill()
-        process.wait()
-
-
-def _start(args: list[str], log: Path) -> subprocess.Popen[bytes]:
-    """``python args`` with this process's whole environment (the ROS wheels and the isolation need it)."""
-    with log.open("wb") as handle:
-        return subprocess.Popen([sys.executable, *args], env=os.environ.copy(), stdout=handle, stderr=subprocess.STDOUT)
-
-
 def _percentile(values: Sequence[float], q: float) -> float:
     return float(np.percentile(np.asarray(values, np.float64), q)) if values else math.nan
 
@@ -286,7 +267,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         )
         node.create_subscription(String, "labeler/stats", monitor.on_stats, stats_qos)
 
-        labeler = _start(
+        labeler = start_python(
             [
                 "-m",
                 "selfcontra_ros.ros.labeler_node",
@@ -305,7 +286,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             if labeler.poll() is not None or time.monotonic() > deadline:
                 raise RuntimeError(f"soak: the labeler did not come up; see {work / 'labeler.log'}")
             rclpy.spin_once(node, timeout_sec=0.1)
-        player = _start(
+        player = start_python(
             [
                 "-m",
                 "selfcontra_ros.ros.player_node",
@@ -358,8 +339,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 next_report += args.report
         elapsed = time.monotonic() - started
     finally:
-        _stop(player)
-        _stop(labeler)
+        stop_process(player, timeout=15.0)
+        stop_process(labeler, timeout=15.0)
         node.destroy_node()
         rclpy.try_shutdown()
 

@@ -21,7 +21,6 @@ import json
 import os
 import shutil
 import signal
-import subprocess
 import sys
 import time
 from collections.abc import Sequence
@@ -40,24 +39,6 @@ __all__ = ["main"]
 # offline labeler does at the end of the bag.
 _LABEL_QUEUE = 256
 _WAIT_S = 900.0
-
-
-def _start(args: list[str], log: Path) -> subprocess.Popen[bytes]:
-    """Start ``python args`` with this process's whole environment (the ROS wheels need it)."""
-    handle = log.open("wb")
-    return subprocess.Popen(
-        [sys.executable, *args], env=os.environ.copy(), stdout=handle, stderr=subprocess.STDOUT, start_new_session=True
-    )
-
-
-def _stop(process: subprocess.Popen[bytes], timeout: float = 10.0) -> None:
-    if process.poll() is None:
-        process.send_signal(signal.SIGINT)
-        try:
-            process.wait(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
 
 
 def _format(mean: dict[str, Any]) -> str:
@@ -84,7 +65,7 @@ def _run_ros(bag: Path, params: Path, labelled: int, out: Path) -> dict[int, dic
     from selfcontra_ros.bags import topics
     from selfcontra_ros.bags.writer import BagWriter
     from selfcontra_ros.ros.conversions import stamp_to_nanoseconds
-    from selfcontra_ros.ros.environment import prepare_ros_environment
+    from selfcontra_ros.ros.environment import prepare_ros_environment, start_python, stop_process
 
     prepare_ros_environment()
     outputs = {
@@ -120,7 +101,7 @@ def _run_ros(bag: Path, params: Path, labelled: int, out: Path) -> dict[int, dic
         )
         node.create_subscription(String, "labeler/stats", lambda m: stats.append(json.loads(m.data)), stats_qos)
 
-        labeler = _start(
+        labeler = start_python(
             [
                 "-m",
                 "selfcontra_ros.ros.labeler_node",
@@ -151,7 +132,7 @@ def _run_ros(bag: Path, params: Path, labelled: int, out: Path) -> dict[int, dic
                 rclpy.spin_once(node, timeout_sec=0.1)
 
         spin_until(lambda: all(s.get_publisher_count() for s in subscriptions), 60.0, "the labeler's publishers")
-        player = _start(
+        player = start_python(
             [
                 "-m",
                 "selfcontra_ros.ros.player_node",
@@ -186,8 +167,7 @@ def _run_ros(bag: Path, params: Path, labelled: int, out: Path) -> dict[int, dic
     finally:
         writer.close()
         for process in (player, labeler):
-            if process is not None:
-                _stop(process)
+            stop_process(process)
         node.destroy_node()
         rclpy.shutdown()
     return recorded
