@@ -19,15 +19,19 @@ Options that deviate from the paper (see
 :class:`selfcontra_ros.labeler.LabelerParams` for what they measured): a
 minimum observation angle for positive votes, a minimum Stage-1 support of the
 query pixel for a positive label, negative votes from less accurate references,
-switching the free-space votes off (all off by default), and the outline-aware
+switching the free-space votes off (all off by default), the outline-aware
 free-space vote (``free_space_neighbourhood``; the labeler's default is 2 px,
 this function's 0 is the paper): a splatted point that agrees with a query
-measurement a pixel or two away casts no free-space vote.
+measurement a pixel or two away casts no free-space vote, and a hysteresis
+(``positive_sigma`` / ``negative_sigma``; the labeler's defaults 1.5 / 3, this
+function's ``None`` is ``sigma_max`` for both, the paper): a lookup votes
+positive only within the first, for an occlusion only beyond the second, and
+not at all in between; free-space violations keep ``sigma_max``.
 
 One more deviation, on by default in the labeler: no positive label in the
 *fattening band* of the query's own disparity map (:func:`fattening_band`),
-the pixels with a disparity more than ``edge_jump_px`` below their own close
-by. A window-based matcher spreads a foreground disparity a few pixels onto
+the pixels with a valid neighbour close by whose disparity is more than
+``edge_jump_px`` below their own. A window-based matcher spreads a foreground disparity a few pixels onto
 the background beside an object's edge (foreground fattening), mostly on the
 side the right camera cannot see (left of the object in the left image). Such
 a fattened point lies a few centimetres beside the object's surface, inside
