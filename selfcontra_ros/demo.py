@@ -99,7 +99,12 @@ def _run_ros(bag: Path, params: Path, labelled: int, out: Path) -> dict[int, dic
         stats_qos = QoSProfile(
             depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL
         )
-        node.create_subscription(String, "labeler/stats", lambda m: stats.append(json.loads(m.data)), stats_qos)
+
+        # A typed function, not a lambda: Jazzy's rclpy does not tie the callback's argument to the message type.
+        def on_stats(msg: String) -> None:
+            stats.append(json.loads(msg.data))
+
+        node.create_subscription(String, "labeler/stats", on_stats, stats_qos)
 
         labeler = start_python(
             [

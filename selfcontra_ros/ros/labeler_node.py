@@ -162,7 +162,7 @@ from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.logging import get_logger
 from rclpy.node import Node
-from rclpy.publisher import Publisher
+from rclpy.publisher import Publisher  # unparameterised: generic (Publisher[MsgT]) in Kilted, not in Jazzy
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 
@@ -568,25 +568,25 @@ class LabelerNode(Node):
             durability=DurabilityPolicy.TRANSIENT_LOCAL,
         )
 
-        self._depth_pub: Publisher[Any] = self.create_publisher(Image, topics.DEPTH, qos_out)
+        self._depth_pub: Publisher = self.create_publisher(Image, topics.DEPTH, qos_out)
         # In external mode ``disparity`` is the input: the node does not publish on it.
-        self._disparity_pub: Publisher[Any] | None = (
+        self._disparity_pub: Publisher | None = (
             None if self._external else self.create_publisher(DisparityImage, topics.DISPARITY, qos_out)
         )
         # Confidence needs images: none in external mode.
-        self._confidence_pub: Publisher[Any] | None = None
-        self._filtered_pub: Publisher[Any] | None = None
+        self._confidence_pub: Publisher | None = None
+        self._filtered_pub: Publisher | None = None
         if self._confidence is not None:
             self._confidence_pub = self.create_publisher(Image, topics.CONFIDENCE, qos_out)
             self._filtered_pub = self.create_publisher(Image, topics.DEPTH_FILTERED, qos_out)
         self._confidence_queue: queue.Queue[_ConfidenceJob | None] = queue.Queue(maxsize=self._confidence_queue_size)
-        self._labels_pub: Publisher[Any] = self.create_publisher(Image, topics.LABELS, qos_out)
-        self._color_pub: Publisher[Any] = self.create_publisher(Image, topics.LABELS_COLOR, qos_out)
-        self._debug_pubs: dict[str, Publisher[Any]] = {}
+        self._labels_pub: Publisher = self.create_publisher(Image, topics.LABELS, qos_out)
+        self._color_pub: Publisher = self.create_publisher(Image, topics.LABELS_COLOR, qos_out)
+        self._debug_pubs: dict[str, Publisher] = {}
         if self._publish_debug:
             for name in (DEBUG_SUPPORT, DEBUG_VOTE_SUM, DEBUG_UNCERTAINTY):
                 self._debug_pubs[name] = self.create_publisher(Image, name, qos_out)
-        self._stats_pub: Publisher[Any] = self.create_publisher(String, STATS, qos_stats)
+        self._stats_pub: Publisher = self.create_publisher(String, STATS, qos_stats)
         self._string_type = String
 
         # The pivot (first key) gives the frame's stamp: the left image, or the external disparity.

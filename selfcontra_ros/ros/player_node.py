@@ -60,7 +60,7 @@ from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.logging import get_logger
 from rclpy.node import Node
-from rclpy.publisher import Publisher
+from rclpy.publisher import Publisher  # unparameterised: generic (Publisher[MsgT]) in Kilted, not in Jazzy
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
 
@@ -159,7 +159,7 @@ class PlayerNode(Node):
             reliability=_RELIABILITIES[reliability],
             durability=DurabilityPolicy.VOLATILE,
         )
-        self._publishers_by_topic: dict[str, Publisher[Any]] = {}
+        self._publishers_by_topic: dict[str, Publisher] = {}
         for name, info in bag.topics.items():
             msg_class = _message_class(info.msgtype)
             if msg_class is None:
@@ -169,7 +169,7 @@ class PlayerNode(Node):
             self._publishers_by_topic[name] = self.create_publisher(msg_class, name.lstrip("/"), qos)
         if not self._publishers_by_topic:
             raise PlayerConfigError(f"bag {bag_path} has no topic this ROS installation can publish")
-        self._clock_publisher: Publisher[Any] | None = None
+        self._clock_publisher: Publisher | None = None
         if publish_clock:
             from rosgraph_msgs.msg import Clock as ClockMsg
 
