@@ -9,10 +9,12 @@ subcommand's optional dependencies never break another.
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from selfcontra_ros import interrupts
 from selfcontra_ros.errors import SelfContraError
 
 __all__ = ["build_parser", "main", "parse_frame_range", "parse_size"]
@@ -301,17 +303,40 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``selfcontra`` command; returns the process exit code."""
     args = build_parser().parse_args(argv)
-    try:
-        from selfcontra_ros.threads import limit_threads
+    with interrupts.handle_signals():
+        try:
+            from selfcontra_ros.threads import limit_threads
 
-        limit_threads(args.threads)
-        return int(args.handler(args))
-    except SelfContraError as exc:
-        print(f"selfcontra {args.command}: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print(f"selfcontra {args.command}: interrupted", file=sys.stderr)
-        return 130
+            limit_threads(args.threads)
+            status = int(args.handler(args))
+            late = interrupts.pending_signal()
+            if late is not None:  # arrived after the last safe point: the output is whole, the user still asked
+                return _interrupted(args.command, late, "it had just finished: its output is complete")
+            return status
+        except interrupts.Interrupted as exc:
+            return _interrupted(args.command, exc.signum, exc.done)
+        except SelfContraError as exc:
+            if interrupts.pending_signal() is not None:  # a forced second signal surfaced as an error
+                return _interrupted(args.command, interrupts.pending_signal(), "")
+            print(f"selfcontra {args.command}: error: {exc}", file=sys.stderr)
+            return 2
+        except BaseException as exc:
+            # A forced second Ctrl-C inside a numba kernel or C callback comes out as SystemError,
+            # RuntimeError, or a plain KeyboardInterrupt: still an interrupt, not a crash to report.
+            signum = interrupts.pending_signal()
+            if signum is None and isinstance(exc, KeyboardInterrupt):
+                signum = signal.SIGINT
+            if signum is None:
+                raise
+            return _interrupted(args.command, signum, "")
+
+
+def _interrupted(command: str, signum: int | None, done: str) -> int:
+    """Print the one line of an interrupted command and return its exit status (128 + signal)."""
+    signum = signal.SIGINT if signum is None else signum
+    what = done or "it wrote no complete output"
+    print(f"selfcontra {command}: interrupted by {signal.Signals(signum).name}; {what}", file=sys.stderr)
+    return 128 + int(signum)
 
 
 if __name__ == "__main__":

@@ -12,6 +12,7 @@ and ``OUT/metrics.json``::
 
     {
       "sequence": "<input path>",
+      "status": "complete",                    # or "interrupted" (Ctrl-C, SIGTERM) / "failed": frames so far
       "frames": [{"frame": 12, "stamp": 1.2, "accuracy": ..., "coverage": ..., ...}, ...],
       "mean": {"accuracy": ..., ...},          # mean over frames of the per-frame values, NaN skipped
       "params": {"matcher": {...}, "labeler": {...}},
@@ -47,6 +48,7 @@ import numpy as np
 from numpy.typing import NDArray
 from tqdm import tqdm
 
+from selfcontra_ros import interrupts
 from selfcontra_ros.config import load_params, params_to_dict
 from selfcontra_ros.datasets.kitti import OdometrySequence, StereoFrame, open_sequence
 from selfcontra_ros.errors import SelfContraError
@@ -129,6 +131,7 @@ def _run(
             yield index, stamps.pop(index), evaluate_view(result, pending.pop(index))
 
     for index in tqdm(indices, desc="label", unit="frame"):
+        interrupts.check()  # between frames: every label PNG written so far is whole
         frame: StereoFrame = sequence[index]
         if frame.pose is None:
             raise SelfContraError(f"frame {index} of {sequence.root} has no pose")
@@ -167,6 +170,8 @@ def label_sequence(
         SelfContraError: if the sequence cannot be read, has no poses, the
             parameters are invalid, or the matcher is ``external`` (a
             sequence folder holds no external disparity).
+        Interrupted: SIGINT or SIGTERM (:mod:`selfcontra_ros.interrupts`), after
+            ``metrics.json`` of the frames labelled so far is written.
     """
     started = time.perf_counter()
     seq_dir, out_dir = Path(seq_dir), Path(out_dir)
@@ -197,16 +202,47 @@ def label_sequence(
         (out_dir / sub).mkdir(parents=True, exist_ok=True)
 
     session = LabelingSession(sequence.camera, matcher_params, labeler_params)
-    per_frame: list[tuple[int, float, dict[str, float]]] = list(_run(sequence, indices, session, out_dir))
+    params = params_to_dict(matcher_params, labeler_params)
+    per_frame: list[tuple[int, float, dict[str, float]]] = []
+    status = "failed"
+    try:
+        per_frame.extend(_run(sequence, indices, session, out_dir))
+        status = "complete"
+    except KeyboardInterrupt as exc:
+        status = "interrupted"
+        if isinstance(exc, interrupts.Interrupted):
+            exc.done = (
+                f"labelled {len(per_frame)} of {len(indices)} frames; wrote their labels to {out_dir} "
+                f"and {out_dir / METRICS_FILE} (status interrupted)"
+            )
+        raise
+    finally:
+        report = _write_report(out_dir, seq_dir, per_frame, indices, status, reliable, unreliable, params, started)
+    return report
+
+
+def _write_report(
+    out_dir: Path,
+    seq_dir: Path,
+    per_frame: list[tuple[int, float, dict[str, float]]],
+    indices: list[int],
+    status: str,
+    reliable: NDArray[np.bool_] | None,
+    unreliable: list[int],
+    params: dict[str, Any],
+    started: float,
+) -> dict[str, Any]:
+    """Write ``metrics.json`` for the frames labelled so far (all, or those before an interrupt); return it."""
     per_frame.sort(key=lambda item: item[0])
     labelled = {index for index, _, _ in per_frame}
     has_gt = any("accuracy" in figures for _, _, figures in per_frame)
 
     report: dict[str, Any] = {
         "sequence": str(seq_dir),
+        "status": status,
         "frames": [{"frame": index, "stamp": stamp, **figures} for index, stamp, figures in per_frame],
         "mean": mean_metrics(figures for _, _, figures in per_frame),
-        "params": params_to_dict(matcher_params, labeler_params),
+        "params": params,
         "skipped_frames": [index for index in indices if index not in labelled],
         "pose_source": "ground truth file" if reliable is None else "stereo visual odometry",
         "unreliable_pose_frames": unreliable,

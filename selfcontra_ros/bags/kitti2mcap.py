@@ -44,6 +44,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from selfcontra_ros import interrupts
 from selfcontra_ros.bags import topics
 from selfcontra_ros.bags.messages import MessageBuilder
 from selfcontra_ros.bags.reader import BagError
@@ -159,12 +160,19 @@ def kitti_to_mcap(
         "selfcontra.stamp_offset_ns": str(int(stamp_offset_ns)),
         "selfcontra.pose_source": "none" if seq.poses is None else "file" if reliable is None else "odometry",
     }
-    with BagWriter(out, compress=compress, atomic=True, custom_data=custom_data) as bag:
-        make = MessageBuilder(bag.typestore)
-        bar = tqdm(indices, desc=f"kitti2mcap {seq.sequence}", unit="frame", disable=not progress)
-        for i, stamp_ns in zip(bar, stamps_ns, strict=True):
-            frame = seq[i]
-            if reliable is not None and not reliable[i]:
-                frame.pose = None  # an unreliable odometry pose is left out rather than written
-            _write_frame(bag, make, seq.camera, frame, stamp_ns)
+    written = 0
+    try:
+        with BagWriter(out, compress=compress, atomic=True, custom_data=custom_data) as bag:
+            make = MessageBuilder(bag.typestore)
+            bar = tqdm(indices, desc=f"kitti2mcap {seq.sequence}", unit="frame", disable=not progress)
+            for i, stamp_ns in zip(bar, stamps_ns, strict=True):
+                interrupts.check()
+                frame = seq[i]
+                if reliable is not None and not reliable[i]:
+                    frame.pose = None  # an unreliable odometry pose is left out rather than written
+                _write_frame(bag, make, seq.camera, frame, stamp_ns)
+                written += 1
+    except interrupts.Interrupted as exc:
+        exc.done = f"converted {written} of {len(indices)} frames; no bag written (a conversion is complete or absent)"
+        raise
     return out

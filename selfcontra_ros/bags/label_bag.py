@@ -69,9 +69,11 @@ and ``confidence`` (:meth:`OnlineConfidence.stats`: source, samples, models trai
 overwritten. Bad messages (undecodable, unsupported encoding, size not
 matching the camera info, NaN or non-rigid pose, stamps going backwards, ...)
 are counted in ``dropped`` and skipped with one warning per reason. Ctrl-C
-(``KeyboardInterrupt``) or an error part way closes the output bag properly:
-it stays readable with everything written so far, and ``metrics.json``
-records the ``status``; the exception is then re-raised.
+(``KeyboardInterrupt``; under the ``selfcontra`` command, SIGINT and SIGTERM
+stop between two messages, see :mod:`selfcontra_ros.interrupts`) or an error
+part way closes the output bag properly: it stays readable and indexed with
+everything written so far, and ``metrics.json`` records the ``status``; the
+exception is then re-raised.
 
 Like :func:`~selfcontra_ros.pipeline.label_sequence`, :func:`label_bag` is a
 pure function of its arguments (DESIGN section 9): it reads ``in_bag`` and the
@@ -95,6 +97,7 @@ from numpy.typing import NDArray
 from rosbags.typesys.store import Typestore
 from tqdm import tqdm
 
+from selfcontra_ros import interrupts
 from selfcontra_ros.bags import topics
 from selfcontra_ros.bags.messages import MessageBuilder
 from selfcontra_ros.bags.reader import Bag, BagError, open_bag
@@ -260,6 +263,7 @@ class _BagLabeler:
         self.view_header: dict[int, tuple[int, str]] = {}
         self.skipped: list[int] = []
         self.results: list[tuple[int, float, dict[str, float]]] = []
+        self.messages_read = 0
 
     # ------------------------------------------------------------------ reading
 
@@ -274,9 +278,11 @@ class _BagLabeler:
         bar = tqdm(total=self.bag.message_count, desc="label bag", unit="msg", disable=not progress)
         try:
             for raw in self.bag.raw_messages():
+                interrupts.check()  # between messages: the output bag stays consistent
                 self.writer.write_raw(raw.topic, raw.stamp_ns, raw.data)
                 self._dispatch(raw.topic, raw.stamp_ns, raw.data, raw.msgtype)
                 self._release(now_ns=raw.stamp_ns)
+                self.messages_read += 1
                 bar.update()
         finally:
             bar.close()
@@ -561,7 +567,8 @@ def label_bag(
         BagError: the input is missing, truncated, corrupt, lacks a needed topic,
             or already holds output topics; the output exists already.
         SelfContraError: invalid parameters, or an external matcher without ``disparity_topic``.
-        KeyboardInterrupt: re-raised after the partial output bag and metrics are written.
+        KeyboardInterrupt: re-raised after the partial output bag and metrics are written; an
+            :class:`~selfcontra_ros.interrupts.Interrupted` (SIGINT, SIGTERM) says how far it got in ``done``.
     """
     started = time.perf_counter()
     in_bag, out_bag = Path(in_bag), Path(out_bag)
@@ -614,8 +621,15 @@ def label_bag(
                 )
                 run.run(progress)
             status = "complete"
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as exc:
             status = "interrupted"
+            if isinstance(exc, interrupts.Interrupted):
+                read = run.messages_read if run is not None else 0
+                labelled = len(run.results) if run is not None else 0
+                exc.done = (
+                    f"labelled {labelled} frames from {read} of {bag.message_count} messages; "
+                    f"wrote {out_bag} (readable and indexed) and its {METRICS_FILE} (status interrupted)"
+                )
             raise
         finally:
             report = _report(in_bag, out_bag, ns, run, synchronizer, status, matcher_params, labeler_params, started)

@@ -43,6 +43,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from selfcontra_ros import interrupts
 from selfcontra_ros.confidence import constants
 from selfcontra_ros.confidence.bag_frames import BagFrame, BagLabels, is_bag, iter_bag_frames, read_bag_labels
 from selfcontra_ros.confidence.features import FeatureContext, compute_features, lrd_confidence
@@ -210,6 +211,7 @@ def collect_samples(
     for (data, labels), source in zip(pairs, sources, strict=True):
         frames = matched = 0
         for frame in iter_frames(data):
+            interrupts.check()
             frames += 1
             if not source.has_labels(frame):
                 continue
@@ -404,6 +406,7 @@ def evaluate_command(
     out.mkdir(parents=True, exist_ok=True)
     frames: dict[str, list[dict[str, Any]]] = {e.name: [] for e in entries}
     for frame in iter_frames(data):
+        interrupts.check()
         if frame.gt_disparity is None:
             continue
         ctx = FeatureContext(query_feature_input(query, frame.left, frame.right))

@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from selfcontra_ros import interrupts
 from selfcontra_ros.confidence import constants, kernels
 from selfcontra_ros.errors import SelfContraError
 
@@ -145,7 +146,8 @@ def fit_forest(
         raise SelfContraError("training samples must hold both positive and negative labels")
     params = {**constants.FOREST, **(forest or {})}
     clf = RandomForestClassifier(n_jobs=n_jobs, **params)
-    clf.fit(x, y.astype(np.int8))
+    with interrupts.immediate():  # minutes inside scikit-learn with no safe point of ours
+        clf.fit(x, y.astype(np.int8))
     positive_class = int(np.flatnonzero(clf.classes_ == 1)[0])
     offsets = [0]
     parts: dict[str, list[NDArray[Any]]] = {name: [] for name in _ARRAYS if name != "tree_offsets"}

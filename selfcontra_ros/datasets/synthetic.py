@@ -31,6 +31,7 @@ import numpy as np
 from numpy.typing import NDArray
 from tqdm import tqdm
 
+from selfcontra_ros import interrupts
 from selfcontra_ros.datasets._raycast import (
     Box,
     Cylinder,
@@ -566,6 +567,12 @@ def _format_row(values: F64) -> str:
     return " ".join(f"{v:.12e}" for v in values)
 
 
+def _write_index(seq: Path, poses_file: Path, poses: F64) -> None:
+    """``times.txt`` (10 Hz) and the pose file of the first ``len(poses)`` frames."""
+    (seq / "times.txt").write_text("".join(f"{k / FRAME_RATE_HZ:.6e}\n" for k in range(len(poses))))
+    poses_file.write_text("".join(_format_row(p[:3].ravel()) + "\n" for p in poses))
+
+
 def write_sequence(
     out: Path, *, scene: str, frames: int, seed: int, width: int = _KITTI_SIZE[0], height: int = _KITTI_SIZE[1]
 ) -> Path:
@@ -590,10 +597,15 @@ def write_sequence(
     p_left, p_right = cam.projection_matrices()
     calib = [f"P{i}: {_format_row(p.ravel())}" for i, p in enumerate((p_left, p_right, p_left, p_right))]
     (seq / "calib.txt").write_text("\n".join(calib) + "\n")
-    (seq / "times.txt").write_text("".join(f"{k / FRAME_RATE_HZ:.6e}\n" for k in range(frames)))
     poses = synthetic.poses(frames)
-    (Path(out) / "poses" / "00.txt").write_text("".join(_format_row(p[:3].ravel()) + "\n" for p in poses))
+    _write_index(seq, Path(out) / "poses" / "00.txt", poses)
     for k in tqdm(range(frames), desc=f"synth {scene}", unit="frame"):
+        try:
+            interrupts.check()
+        except interrupts.Interrupted as exc:
+            _write_index(seq, Path(out) / "poses" / "00.txt", poses[:k])  # reads like a shorter sequence
+            exc.done = f"rendered {k} of {frames} frames; wrote them to {seq} (times.txt and poses list those {k})"
+            raise
         frame = synthetic.render(k)
         name = f"{k:06d}.png"
         disp = np.nan_to_num(frame.disparity, nan=0.0)

@@ -37,6 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 from tqdm import tqdm
 
+from selfcontra_ros import interrupts
 from selfcontra_ros.bags import topics
 from selfcontra_ros.bags.reader import BagError, open_bag
 from selfcontra_ros.bags.sync import StampSynchronizer
@@ -121,6 +122,7 @@ def _sequence_frames(
     sequence: OdometrySequence | StereoScene, indices: range, progress: bool
 ) -> Iterator[tuple[float, NDArray[np.uint8], NDArray[np.uint8]]]:
     for i in tqdm(indices, desc="odometry", unit="frame", disable=not progress):
+        interrupts.check()
         frame = sequence[i]
         yield frame.stamp, frame.left, frame.right
 
@@ -259,6 +261,7 @@ def estimate_bag_poses(
 
     def frames() -> Iterator[tuple[float, NDArray[np.uint8], NDArray[np.uint8]]]:
         for stamp_ns, left, right in tqdm(pairs, desc="odometry", unit="frame", disable=not progress):
+            interrupts.check()
             stamps.append(stamp_ns)
             yield stamp_ns / _NS_PER_S, left, right
 
