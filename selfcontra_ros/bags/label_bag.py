@@ -197,7 +197,7 @@ class _Messages(MessageBuilder):
             min_disparity, max_disparity = 0.0, None
         else:
             min_disparity = float(self._matcher.min_disparity)
-            max_disparity = min_disparity + self._matcher.num_disparities - 1
+            max_disparity = self._matcher.max_disparity
         return self.disparity(
             disparity,
             camera,

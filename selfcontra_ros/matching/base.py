@@ -165,6 +165,15 @@ class MatcherParams:
         if not (5 <= self.pre_filter_size <= 255) or self.pre_filter_size % 2 == 0:
             raise MatcherError(f"MatcherParams.pre_filter_size must be odd and in [5, 255], got {self.pre_filter_size}")
 
+    @property
+    def max_disparity(self) -> float:
+        """Largest disparity searched, pixels: ``min_disparity + num_disparities - 1``.
+
+        The one value every ``stereo_msgs/DisparityImage`` of the package
+        reports (node and offline labeler alike), as stereo_image_proc does.
+        """
+        return float(self.min_disparity + self.num_disparities - 1)
+
     def penalties(self, channels: int) -> tuple[int, int]:
         """Return the SGBM smoothness penalties ``(P1, P2)`` for images with ``channels`` channels.
 

@@ -211,11 +211,15 @@ def stamp_ns(msg: Any) -> int:
     return int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
 
 
-def check_outputs(recorder: Recorder, frames: Frames, params_file: Path, *, flushed: bool) -> None:
+def check_outputs(
+    recorder: Recorder, frames: Frames, params_file: Path, *, flushed: bool, external: bool = False
+) -> None:
     """Depth of every frame and labels of the labelled views equal the reference session's, with the right headers."""
     from selfcontra_ros.ros.conversions import disparity_from_message, image_to_numpy
 
     depths, results = reference(frames, params_file)
+    matcher, _ = load_params(params_file)
+    max_disparity = matcher.min_disparity + matcher.num_disparities - 1
     n_frames = len(frames.left)
     depth_msgs = recorder.received[topics.DEPTH]
     assert [stamp_ns(m) for m in depth_msgs] == [frames.stamp_ns(k) for k in range(n_frames)]
@@ -224,8 +228,12 @@ def check_outputs(recorder: Recorder, frames: Frames, params_file: Path, *, flus
         depth = image_to_numpy(msg)
         assert np.array_equal(depth, depths[k], equal_nan=True), f"depth of frame {k} differs from the session's"
         # The depth is the camera's disparity_to_depth of the published disparity.
-        disparity, f, t = disparity_from_message(recorder.received[topics.DISPARITY][k])
+        disparity_msg = recorder.received[topics.DISPARITY][k]
+        disparity, f, t = disparity_from_message(disparity_msg)
         assert (f, t) == pytest.approx((frames.camera.fx, frames.camera.baseline))
+        if not external:  # else DISPARITY carries the test's own input
+            # The search range as the offline labeler reports it (stereo_image_proc: min + num - 1).
+            assert (disparity_msg.min_disparity, disparity_msg.max_disparity) == (matcher.min_disparity, max_disparity)
         assert np.array_equal(frames.camera.disparity_to_depth(disparity).astype(np.float32), depth, equal_nan=True)
     labelled = n_frames if flushed else n_frames - DELAY
     label_msgs = recorder.received[topics.LABELS]
@@ -421,7 +429,7 @@ def test_external_disparity_mode_labels_the_given_disparities(
         feeder.send_pose(frames.poses[k], stamp)
     done = spin_nodes([node, ros_node], lambda: recorder.count(topics.LABELS_COLOR) >= FRAMES - DELAY, 20.0)
     assert done, (recorder.stats, node.stats())
-    check_outputs(recorder, frames, params_file, flushed=False)
+    check_outputs(recorder, frames, params_file, flushed=False, external=True)
 
 
 def test_odometry_pose_source_labels_with_visual_odometry_poses(
