@@ -790,7 +790,7 @@ class LabelerNode(Node):
                 stamp=stamp,
                 frame_id=frame_id,
                 min_disparity=float(p.min_disparity),
-                max_disparity=float(p.min_disparity + p.num_disparities),
+                max_disparity=p.max_disparity,
             )
         )
         self._after_match(session, match.stamp_ns, frame_id, disparity, frame)
