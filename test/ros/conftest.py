@@ -2,7 +2,8 @@
 
 Network safety: every test in this folder runs with
 ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``, its own ``ROS_DOMAIN_ID`` and
-the packaged Fast DDS profile (UDP on loopback only), with static peers and
+the packaged Fast DDS profile (UDP on loopback only; in the variable that the
+installed Fast DDS, 2.x or 3.x, reads), with static peers and
 discovery servers removed from the environment; subprocesses started through
 :func:`ros_process` inherit exactly that environment.
 
@@ -27,6 +28,7 @@ from typing import Any
 import pytest
 
 from selfcontra_ros.resources import config_file
+from selfcontra_ros.ros.environment import FASTDDS_PROFILE_VARIABLES, fastdds_profile_variables
 
 # Fast DDS maps a domain to UDP ports 7400 + 250 * domain + ...; 0..101 keeps every port below the
 # Linux ephemeral range whatever the participant count. Domain 0 (the default) is left to other users.
@@ -77,14 +79,17 @@ def ros_environment(monkeypatch: pytest.MonkeyPatch) -> dict[str, str]:
     variables = {
         "ROS_DOMAIN_ID": str(next_domain_id()),
         "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
-        # Forced, not only defaulted as prepare_ros_environment does: a user profile might open
-        # network interfaces, and the transport test is meant to exercise the packaged profile.
-        "FASTDDS_DEFAULT_PROFILES_FILE": str(config_file("fastdds_profile.xml")),
     }
+    # Forced, not only defaulted as prepare_ros_environment does: a user profile might open network
+    # interfaces, and the transport test is meant to exercise the packaged profile. Set in the variables
+    # this Fast DDS reads; any other is removed (Kilted's rmw would read a user's FASTRTPS_ one as well).
+    profile = str(config_file("fastdds_profile.xml"))
+    variables.update(dict.fromkeys(fastdds_profile_variables(), profile))
     for name, value in variables.items():
         monkeypatch.setenv(name, value)
-    for name in _OFF_LOOPBACK_VARIABLES:
-        monkeypatch.delenv(name, raising=False)
+    for name in (*_OFF_LOOPBACK_VARIABLES, *FASTDDS_PROFILE_VARIABLES):
+        if name not in variables:
+            monkeypatch.delenv(name, raising=False)
     return variables
 
 

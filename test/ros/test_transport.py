@@ -7,6 +7,7 @@ import os
 import sys
 import xml.etree.ElementTree as ET
 from collections.abc import Callable
+from importlib import metadata
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -15,10 +16,17 @@ import numpy as np
 import pytest
 
 from selfcontra_ros.resources import config_file
+from selfcontra_ros.ros import environment
+from selfcontra_ros.ros.environment import (
+    FASTDDS_PROFILE_VARIABLES,
+    fastdds_profile_variables,
+    prepare_ros_environment,
+)
 
 HERE = Path(__file__).resolve().parent
 PUBLISHER = HERE / "_image_publisher.py"
 NS = {"dds": "http://www.eprosima.com"}
+FASTDDS_3, FASTDDS_2 = FASTDDS_PROFILE_VARIABLES  # the variable Fast DDS 3.x reads, the one Fast DDS 2.x reads
 
 
 def _load_publisher_module() -> ModuleType:
@@ -49,37 +57,111 @@ def test_profile_declares_large_shm_and_loopback_udp() -> None:
     assert whitelist == ["127.0.0.1"]
 
 
-def test_prepare_ros_environment_defaults_to_the_packaged_profile(monkeypatch: pytest.MonkeyPatch) -> None:
-    from selfcontra_ros.ros.environment import prepare_ros_environment
+@pytest.fixture
+def profile_environment(monkeypatch: pytest.MonkeyPatch) -> Callable[[int | None], None]:
+    """``given(major)``: neither profile variable set, and Fast DDS ``major`` (3, 2, None: unknown) installed."""
 
-    variable = "FASTDDS_DEFAULT_PROFILES_FILE"
-    monkeypatch.delenv(variable, raising=False)
+    def given(major: int | None) -> None:
+        for name in FASTDDS_PROFILE_VARIABLES:
+            monkeypatch.delenv(name, raising=False)
+        monkeypatch.setattr(environment, "_fast_dds_major", lambda: major)
+
+    return given
+
+
+@pytest.mark.parametrize(
+    ("major", "variables"), [(3, [FASTDDS_3]), (2, [FASTDDS_3, FASTDDS_2]), (None, [FASTDDS_3, FASTDDS_2])]
+)
+def test_prepare_ros_environment_defaults_to_the_packaged_profile(
+    profile_environment: Callable[[int | None], None],
+    monkeypatch: pytest.MonkeyPatch,
+    major: int | None,
+    variables: list[str],
+) -> None:
+    profile_environment(major)
     monkeypatch.delenv("ROS_AUTOMATIC_DISCOVERY_RANGE", raising=False)
     prepare_ros_environment()
-    assert os.environ[variable] == str(config_file("fastdds_profile.xml"))
-    assert Path(os.environ[variable]).is_file()
+    set_now = {name: os.environ[name] for name in FASTDDS_PROFILE_VARIABLES if name in os.environ}
+    # Fast DDS 3 gets no FASTRTPS_ variable: Kilted's rmw would read it too and warn that it is deprecated.
+    assert set_now == dict.fromkeys(variables, str(config_file("fastdds_profile.xml")))
+    assert Path(os.environ[FASTDDS_3]).is_file()
     assert "ROS_AUTOMATIC_DISCOVERY_RANGE" not in os.environ  # left to the user: graphs may span machines
 
-    monkeypatch.setenv(variable, "/robot/own_profile.xml")
-    prepare_ros_environment()
-    assert os.environ[variable] == "/robot/own_profile.xml"
 
-    monkeypatch.setenv(variable, "")  # "no profile": removed, so Fast DDS does not try to open ""
+@pytest.mark.parametrize("major", [3, 2])
+@pytest.mark.parametrize("chosen", [FASTDDS_3, FASTDDS_2])
+def test_a_profile_the_user_chose_in_either_variable_holds_for_both(
+    profile_environment: Callable[[int | None], None], monkeypatch: pytest.MonkeyPatch, chosen: str, major: int
+) -> None:
+    own = "/robot/own_profile.xml"
+    profile_environment(major)
+    monkeypatch.setenv(chosen, own)
+    # Copied into the variable the installed Fast DDS reads; the user's own is never changed.
+    expected = {FASTDDS_3: own, FASTDDS_2: own} if major == 2 or chosen == FASTDDS_2 else {FASTDDS_3: own}
+    for _ in range(2):  # idempotent
+        prepare_ros_environment()
+        assert {name: os.environ[name] for name in FASTDDS_PROFILE_VARIABLES if name in os.environ} == expected
+
+    profile_environment(major)
+    monkeypatch.setenv(chosen, "")  # "no profile" for both: removed, so Fast DDS does not try to open ""
     prepare_ros_environment()
-    assert variable not in os.environ
+    assert not set(FASTDDS_PROFILE_VARIABLES) & set(os.environ)
+
+
+def test_profiles_the_user_set_in_both_variables_are_kept(
+    profile_environment: Callable[[int | None], None], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    profile_environment(2)
+    monkeypatch.setenv(FASTDDS_3, "/robot/fastdds3.xml")
+    monkeypatch.setenv(FASTDDS_2, "/robot/fastdds2.xml")
+    prepare_ros_environment()
+    assert (os.environ[FASTDDS_3], os.environ[FASTDDS_2]) == ("/robot/fastdds3.xml", "/robot/fastdds2.xml")
+
+
+def test_the_installed_fast_dds_is_recognised() -> None:
+    """The venvs of the Makefile hold ros-fastdds (Kilted, Fast DDS 3) or ros-fastrtps (Jazzy, Fast DDS 2)."""
+    installed = {name for name in ("ros-fastdds", "ros-fastrtps") if _is_installed(name)}
+    if not installed:
+        pytest.skip("no Fast DDS wheel installed (a ROS installation's own Fast DDS)")
+    expected = [FASTDDS_3] if installed == {"ros-fastdds"} else [FASTDDS_3, FASTDDS_2]
+    assert list(fastdds_profile_variables()) == expected
+
+
+def _is_installed(distribution: str) -> bool:
+    try:
+        metadata.version(distribution)
+    except metadata.PackageNotFoundError:
+        return False
+    return True
+
+
+def _fastdds_output(proc: Any) -> str:
+    """What a :class:`RosProcess` printed: Fast DDS 3.x logs on stderr, Fast DDS 2.14 on stdout."""
+    output: str = proc.stdout() + proc.stderr()
+    return output
 
 
 @pytest.mark.ros
-def test_fastdds_xml_errors_would_show_on_stderr(
-    ros_process: Callable[..., Any], ros_environment: dict[str, str], tmp_path: Path
+@pytest.mark.parametrize("chosen", [FASTDDS_3, FASTDDS_2])
+def test_fastdds_xml_errors_would_show(
+    ros_process: Callable[..., Any], monkeypatch: pytest.MonkeyPatch, tmp_path: Path, chosen: str
 ) -> None:
-    """Negative control for the 'no XML errors' check below: a broken profile is reported on stderr."""
+    """Negative control for the 'no XML errors' check below, through either variable.
+
+    A broken profile the user names in one variable reaches the installed Fast DDS, whichever
+    variable that reads, and is reported on its stdout or stderr.
+    """
     broken = tmp_path / "broken.xml"
     broken.write_text('<dds xmlns="http://www.eprosima.com"><profiles><participant>')
-    code = "import rclpy; rclpy.init(); rclpy.create_node('probe').destroy_node(); rclpy.shutdown()"
-    proc = ros_process(["-c", code], extra_env={"FASTDDS_DEFAULT_PROFILES_FILE": str(broken)}, name="probe")
-    assert proc.popen.wait(timeout=20) == 0
-    assert "XMLPARSER" in proc.stderr()
+    for name in FASTDDS_PROFILE_VARIABLES:
+        monkeypatch.delenv(name, raising=False)
+    code = (
+        "from selfcontra_ros.ros.environment import prepare_ros_environment; prepare_ros_environment(); "
+        "import rclpy; rclpy.init(); rclpy.create_node('probe').destroy_node(); rclpy.shutdown()"
+    )
+    proc = ros_process(["-c", code], extra_env={chosen: str(broken)}, name="probe")
+    assert proc.popen.wait(timeout=20) == 0, _fastdds_output(proc)
+    assert "XMLPARSER" in _fastdds_output(proc)
 
 
 @pytest.mark.ros
@@ -94,10 +176,10 @@ def test_large_best_effort_images_cross_processes(
     from sensor_msgs.msg import Image
 
     from selfcontra_ros.ros.conversions import image_to_numpy
-    from selfcontra_ros.ros.environment import prepare_ros_environment
 
     prepare_ros_environment()  # what every executable does; the fixture already chose the packaged profile
-    assert os.environ["FASTDDS_DEFAULT_PROFILES_FILE"] == str(config_file("fastdds_profile.xml"))
+    for name in fastdds_profile_variables():
+        assert os.environ[name] == str(config_file("fastdds_profile.xml"))
     assert os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
 
     topic = f"selfcontra_test_images_{os.getpid()}"
@@ -132,8 +214,10 @@ def test_large_best_effort_images_cross_processes(
     assert len(good) >= 0.9 * span, f"lost {span - len(good)} of {span} frames: {good}"
     assert exit_code == 0, publisher.stderr()
     assert "published" in publisher.stdout()
-    # The packaged profile parses: neither process reported an XML (or any other Fast DDS) error.
-    assert "XMLPARSER" not in publisher.stderr() and "Error" not in publisher.stderr(), publisher.stderr()
+    # The packaged profile parses: neither process reported an XML (or any other Fast DDS) error,
+    # on stdout (Fast DDS 2.14) or stderr (3.x).
+    output = _fastdds_output(publisher)
+    assert "XMLPARSER" not in output and "Error" not in output, output
     captured = capfd.readouterr()
-    assert "XMLPARSER" not in captured.err, captured.err
+    assert "XMLPARSER" not in captured.out + captured.err, captured.out + captured.err
     print(f"received {len(good)} correct 1242x375 rgb8 frames: {good}", file=sys.stderr)
