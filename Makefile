@@ -1,5 +1,6 @@
 # The README's two commands: `make test` and `make demo`. Each creates .venv
 # on first use and installs the pinned dependencies (constraints.txt).
+# `make test-jazzy` does the same in .venv-jazzy with ROS 2 Jazzy's wheels.
 
 PYTHON ?= python3
 VENV := .venv
@@ -11,7 +12,7 @@ STAMP := $(VENV)/.installed
 export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 export ROS_DOMAIN_ID ?= 73
 
-.PHONY: all venv test lint typecheck unit demo bags clean
+.PHONY: all venv venv-jazzy test test-jazzy lint typecheck unit demo bags clean
 
 all: test
 
@@ -19,9 +20,34 @@ $(STAMP): setup.py setup.cfg constraints.txt
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -c constraints.txt -e ".[ros,dev]"
+	$(BIN)/python -m pip check
 	@touch $(STAMP)
 
 venv: $(STAMP)
+
+# ROS 2 Jazzy (Fast DDS 2.14) in a venv of its own. Kilted's and Jazzy's wheels
+# share names (ros-rclpy 9.x / 7.x, ros-rcl, ...), so one venv never holds both:
+# constraints.txt comes without its ros- lines (Kilted's pins), and `pip check`
+# fails an install that mixed them.
+JAZZY_VENV := .venv-jazzy
+JAZZY_BIN := $(JAZZY_VENV)/bin
+JAZZY_STAMP := $(JAZZY_VENV)/.installed
+
+$(JAZZY_STAMP): setup.py setup.cfg constraints.txt constraints-jazzy.txt
+	@test -x $(JAZZY_BIN)/python || $(PYTHON) -m venv $(JAZZY_VENV)
+	$(JAZZY_BIN)/python -m pip install --quiet --upgrade pip
+	sed '/^ros-/d' constraints.txt > $(JAZZY_VENV)/constraints-without-ros.txt
+	$(JAZZY_BIN)/python -m pip install --quiet -c $(JAZZY_VENV)/constraints-without-ros.txt -c constraints-jazzy.txt \
+		-e ".[ros-jazzy,dev]"
+	$(JAZZY_BIN)/python -m pip check
+	@touch $(JAZZY_STAMP)
+
+venv-jazzy: $(JAZZY_STAMP)
+
+# Only what depends on the distribution runs twice: mypy against Jazzy's rclpy and the ROS tests.
+test-jazzy: $(JAZZY_STAMP)
+	$(JAZZY_BIN)/mypy --cache-dir .mypy_cache-jazzy selfcontra_ros
+	$(JAZZY_BIN)/python -m pytest -q -p no:cacheprovider test/ros
 
 lint: $(STAMP)
 	$(BIN)/ruff check selfcontra_ros test bench docs bags launch
@@ -49,4 +75,4 @@ profile: $(STAMP)
 	$(BIN)/python bench/profile_labeler.py
 
 clean:
-	rm -rf $(VENV) build install log .pytest_cache .mypy_cache .ruff_cache $(DEMO_OUT)
+	rm -rf $(VENV) $(JAZZY_VENV) build install log .pytest_cache .mypy_cache .mypy_cache-jazzy .ruff_cache $(DEMO_OUT)

@@ -10,6 +10,18 @@ from glob import glob
 from setuptools import find_packages, setup
 
 PACKAGE = "selfcontra_ros"
+# The ROS 2 packages the nodes import, as PyPI wheels name them after the
+# distribution prefix ("ros-" for Kilted, "ros-jazzy-" for Jazzy).
+ROS_PACKAGES = [
+    "rclpy",
+    "rmw-fastrtps-cpp",
+    "std-msgs",
+    "sensor-msgs",
+    "geometry-msgs",
+    "stereo-msgs",
+    "nav-msgs",
+    "ament-index-python",
+]
 
 setup(
     name=PACKAGE,
@@ -36,16 +48,10 @@ setup(
         "matplotlib>=3.7",
     ],
     extras_require={
-        "ros": [
-            "ros-rclpy",
-            "ros-rmw-fastrtps-cpp",
-            "ros-std-msgs",
-            "ros-sensor-msgs",
-            "ros-geometry-msgs",
-            "ros-stereo-msgs",
-            "ros-nav-msgs",
-            "ros-ament-index-python",
-        ],
+        # One ROS 2 distribution per environment: Kilted's and Jazzy's wheels share
+        # distribution names (ros-rclpy 9.x vs 7.x) and cannot be mixed.
+        "ros": [f"ros-{name}" for name in ROS_PACKAGES],  # Kilted
+        "ros-jazzy": [f"ros-jazzy-{name}" for name in ROS_PACKAGES],
         "dev": [
             "pytest",
             "pytest-timeout",
