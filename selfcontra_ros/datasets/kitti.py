@@ -124,8 +124,8 @@ class StereoFrame:
 # --------------------------------------------------------------------------- images
 
 
-def read_image(path: Path | str, *, color: bool = False) -> NDArray[np.uint8]:
-    """Load an 8-bit image as HxW grey (``color=False``) or HxWx3 RGB (``color=True``).
+def read_image(path: Path | str, *, color: bool | None = False) -> NDArray[np.uint8]:
+    """Load an 8-bit image as HxW grey (``color=False``), HxWx3 RGB (``color=True``) or as stored (``None``).
 
     Raises:
         DatasetError: naming the path when the file is missing or unreadable,
@@ -137,6 +137,8 @@ def read_image(path: Path | str, *, color: bool = False) -> NDArray[np.uint8]:
         raise DatasetError(f"cannot read image {path} (missing or not an image file)")
     if image.dtype != np.uint8:
         raise DatasetError(f"image {path} is {image.dtype}, expected 8-bit (uint8)")
+    if color is None:
+        color = image.ndim == 3
     if color:
         if image.ndim != 3 or image.shape[2] not in (3, 4):
             raise DatasetError(f"image {path} has shape {image.shape}, expected a colour image (HxWx3)")
