@@ -262,12 +262,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--data",
         action="append",
         required=True,
-        help="sequence, KITTI stereo split, Middlebury scenes or bag (repeatable)",
+        help="sequence, KITTI stereo split, Middlebury 2003/2014 or ETH3D scenes, or bag (repeatable)",
     )
     train.add_argument(
         "--labels", action="append", required=True, help="label folder, labelled bag or 'gt' (repeatable)"
     )
-    train.add_argument("--out", required=True, help="model file to write (.npz)")
+    train.add_argument(
+        "--out", required=True, help="model file to write, as given (.npz is added only to a name without suffix)"
+    )
     train.add_argument(
         "--algorithm",
         choices=("sgbm", "bm", "census_sgm"),
@@ -287,7 +289,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument(
         "--data",
         required=True,
-        help="frames with ground truth (sequence, KITTI stereo, Middlebury or bag)",
+        help="frames with ground truth (sequence, KITTI stereo, Middlebury 2003/2014, ETH3D or bag)",
     )
     evaluate.add_argument("--out", required=True, help="output folder")
     evaluate.add_argument(

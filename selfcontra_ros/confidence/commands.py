@@ -7,7 +7,8 @@ Data inputs (``--data``), detected from the folder's layout:
   ground truth when the sequence has ``disp_0``;
 * a KITTI stereo 2012/2015 split (:func:`~selfcontra_ros.datasets.kitti.open_stereo_dataset`):
   the reference frame ``NNNNNN_10`` of every scene, with ground truth;
-* a Middlebury 2003 scene folder, or a folder of them (:mod:`selfcontra_ros.datasets.middlebury`);
+* a Middlebury scene folder (2003, 2014 / MiddEval3 or ETH3D two-view layout), or a
+  folder of them (:mod:`selfcontra_ros.datasets.middlebury`);
 * a rosbag2 bag (folder with ``metadata.yaml`` or ``.mcap`` file): its stereo
   pairs, with ground truth from ``NS/ground_truth/disparity`` when it has it
   (:mod:`selfcontra_ros.confidence.bag_frames`).
@@ -251,7 +252,8 @@ def train_command(
             ``labels`` a ``selfcontra label`` output folder, a ``selfcontra label-bag`` output bag
             (``data`` then a bag: the labelled bag itself or the bag it was made from) or ``"gt"``.
         features: ``ensemble``, ``gcp`` or ``park``.
-        out: model file (``.npz`` appended when missing).
+        out: model file, written as given (``.npz`` added only to a name without suffix:
+            :func:`~selfcontra_ros.confidence.forest.model_path`).
         matcher: query algorithm for ``gt`` labels (label folders and bags bring their own).
         n_jobs: scikit-learn workers.
         max_per_class: per-image cap on samples of each class.

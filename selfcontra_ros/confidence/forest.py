@@ -22,6 +22,8 @@ A forest's confidence is the mean over trees of the leaf's positive share
 from __future__ import annotations
 
 import json
+import os
+import threading
 import zipfile
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -36,7 +38,7 @@ from selfcontra_ros import interrupts
 from selfcontra_ros.confidence import constants, kernels
 from selfcontra_ros.errors import SelfContraError
 
-__all__ = ["FORMAT", "ForestModel", "ModelError", "fit_forest", "load_model", "save_model"]
+__all__ = ["FORMAT", "ForestModel", "ModelError", "fit_forest", "load_model", "model_path", "save_model"]
 
 #: Value of ``metadata["format"]`` in the package's model files.
 FORMAT = "selfcontra-forest-1"
@@ -171,16 +173,32 @@ def fit_forest(
     return model
 
 
-def save_model(model: ForestModel, path: Path | str) -> Path:
-    """Write ``model`` as a ``.npz`` of plain arrays (see the module docstring); returns the path written."""
+def model_path(path: Path | str) -> Path:
+    """Where :func:`save_model` writes ``path``: the path as given, with ``.npz`` added only when it has no suffix."""
     path = Path(path)
-    if path.suffix != ".npz":
-        path = path.with_name(path.name + ".npz")
+    return path if path.suffix else path.with_name(path.name + ".npz")
+
+
+def save_model(model: ForestModel, path: Path | str) -> Path:
+    """Write ``model`` as a ``.npz`` of plain arrays (see the module docstring); returns the path written.
+
+    The file is :func:`model_path` of ``path`` (``park.model`` stays
+    ``park.model``; ``park`` becomes ``park.npz``), written atomically: a
+    temporary file beside it, then a rename, so that a reader (the node
+    loading ``model_in``, an interrupted run) never sees half a model.
+    """
+    path = model_path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     meta = {**model.metadata, "format": FORMAT}
     arrays = {name: np.asarray(getattr(model, name), dtype=dtype) for name, dtype in _ARRAYS.items()}
     text = json.dumps(meta, sort_keys=True).encode("utf-8")
-    np.savez_compressed(path, metadata=np.frombuffer(text, dtype=np.uint8), **arrays)  # type: ignore[arg-type]
+    temporary = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.partial")
+    try:
+        with temporary.open("wb") as handle:  # a file object: numpy would append .npz to a name
+            np.savez_compressed(handle, metadata=np.frombuffer(text, dtype=np.uint8), **arrays)  # type: ignore[arg-type]
+        temporary.replace(path)
+    finally:
+        temporary.unlink(missing_ok=True)
     return path
 
 

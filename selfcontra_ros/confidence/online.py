@@ -52,7 +52,6 @@ the caller's thread, so a bag run is reproducible.
 from __future__ import annotations
 
 import logging
-import os
 import queue
 import threading
 import time
@@ -356,16 +355,11 @@ class OnlineConfidence:
         return model
 
     def save(self, path: str | Path) -> Path | None:
-        """Write the current model to ``path`` atomically (temporary file, then rename); None without a model."""
+        """Write the current model to ``path`` atomically (see ``forest.save_model``); None without a model."""
         model = self.model
         if model is None:
             return None
-        final = Path(path)
-        if final.suffix != ".npz":
-            final = final.with_name(final.name + ".npz")
-        temporary = save_model(model, final.with_name(f".{final.stem}.{os.getpid()}.tmp.npz"))
-        temporary.replace(final)
-        return final
+        return save_model(model, path)
 
     def _swap(self, model: ForestModel, samples: int, how: str) -> None:
         with self._lock:

@@ -89,3 +89,14 @@ def test_inconsistent_trees_are_refused(tmp_path: Path) -> None:
         load_model(path)
     with pytest.raises(ModelError, match="does not exist"):
         load_model(tmp_path / "missing.npz")
+
+
+def test_the_model_file_is_the_path_given(tmp_path: Path) -> None:
+    x, y = data()
+    model = fit_forest(x, y, {"feature_set": "test"}, forest=SMALL)
+    # A suffix of the user's own is kept (evaluate-confidence --model park.model must find it) ...
+    assert save_model(model, tmp_path / "park.model") == tmp_path / "park.model"
+    assert load_model(tmp_path / "park.model").n_trees == 4
+    # ... and only a bare name gets .npz.
+    assert save_model(model, tmp_path / "park") == tmp_path / "park.npz"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["park.model", "park.npz"]  # no temporary left behind
