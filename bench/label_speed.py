@@ -43,7 +43,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from selfcontra_ros.datasets.synthetic import make_scene
+from selfcontra_ros.datasets.synthetic import SCENES, make_scene
 from selfcontra_ros.geometry import StereoCamera
 from selfcontra_ros.labeler import Labeler, LabelerParams
 from selfcontra_ros.matching.base import MatcherParams, make_matcher
@@ -171,7 +171,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--window", type=int, default=None, help="window size (default: 10 and 20)")
     parser.add_argument("--frames", type=int, default=30, help="frames to render and label (default 30)")
     parser.add_argument("--size", type=_size, default=(1241, 376), help="image size WxH (default 1241x376)")
-    parser.add_argument("--scene", choices=("street", "orbit"), default="street")
+    parser.add_argument("--scene", choices=SCENES, default="street")
     parser.add_argument("--seed", type=int, default=1)
     args = parser.parse_args(argv)
     windows = (args.window,) if args.window else DEFAULT_WINDOWS

@@ -42,7 +42,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 import selfcontra_ros.labeler as labeler_module
-from selfcontra_ros.datasets.synthetic import make_scene
+from selfcontra_ros.datasets.synthetic import SCENES, make_scene
 from selfcontra_ros.geometry import StereoCamera
 from selfcontra_ros.labeler import Labeler, LabelerParams
 from selfcontra_ros.matching.base import MatcherParams, make_matcher
@@ -150,7 +150,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--window", type=int, default=None, help="window size (default: 10 and 20)")
     parser.add_argument("--frames", type=int, default=None, help="frames (default: largest window + 6)")
     parser.add_argument("--size", type=_size, default=(1241, 376), help="image size WxH (default 1241x376)")
-    parser.add_argument("--scene", choices=("street", "orbit"), default="street")
+    parser.add_argument("--scene", choices=SCENES, default="street")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--cprofile", type=int, default=0, metavar="N", help="print the N top cProfile entries")
     args = parser.parse_args(argv)

@@ -15,6 +15,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from selfcontra_ros import interrupts
+from selfcontra_ros.datasets import SCENES
 from selfcontra_ros.errors import SelfContraError
 
 __all__ = ["build_parser", "main", "parse_frame_range", "parse_size"]
@@ -183,7 +184,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     synth = sub.add_parser("synth", help="render a synthetic stereo sequence in the KITTI odometry layout")
-    synth.add_argument("--scene", choices=("street", "orbit"), default="street")
+    synth.add_argument("--scene", choices=SCENES, default="street")
     synth.add_argument("--frames", type=int, default=30, help="number of stereo frames (default 30)")
     synth.add_argument("--seed", type=int, default=1, help="random seed; output is deterministic per seed")
     synth.add_argument("--size", type=parse_size, default=(1226, 370), help="image size WxH (default 1226x370)")

@@ -31,6 +31,8 @@ import cv2
 import numpy as np
 import yaml
 
+from selfcontra_ros.datasets import SCENES
+
 __all__ = ["main"]
 
 # The labeler's queue holds every view, so replaying at the bag's own pace never
@@ -207,7 +209,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run the demo; returns the process exit code."""
     parser = argparse.ArgumentParser(prog="selfcontra-demo", description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="demo_out", help="output folder, replaced on every run (default demo_out)")
-    parser.add_argument("--scene", choices=("street", "orbit"), default="street")
+    parser.add_argument("--scene", choices=SCENES, default="street")
     parser.add_argument("--frames", type=int, default=24)
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--size", default="620x188", help="image size WxH (default 620x188: a half-size KITTI)")

@@ -5,7 +5,7 @@ procedural textures (functions of the 3D point, so every view agrees) and a
 camera trajectory. Rendering a frame ray-casts the left and the right camera
 and returns grey images, the left depth and disparity and the pose.
 
-Two scenes:
+Three scenes:
 
 - ``street``: a car drives along a street (about 1 m per frame, 10 Hz) with a
   gentle S-bend part of the way; road with lane markings, raised sidewalks
@@ -14,6 +14,13 @@ Two scenes:
   thin poles and a textureless sky.
 - ``orbit``: a drone circles a few boxes, cylinders and a sphere on textured
   ground, a few degrees per frame, looking slightly down at them.
+- ``room``: a MAV flies a loop inside a furnished room (the on-board use
+  case): large near-textureless walls and ceiling, a window onto a bright,
+  overexposed outside, a floor of repetitive tiles, a table and chairs on
+  thin legs, shelves with clutter, and parts of the furniture nearer than the
+  disparity range at times. The camera yaws, pitches and rolls as it flies
+  (about 0.1 m per frame), and its baseline is a MAV's (0.12-0.2 m, drawn per
+  seed), not KITTI's.
 
 World coordinates of the written poses are those of the left camera at frame
 0 (KITTI odometry convention); inside a scene, primitives live in a scene
@@ -32,6 +39,7 @@ from numpy.typing import NDArray
 from tqdm import tqdm
 
 from selfcontra_ros import interrupts
+from selfcontra_ros.datasets import SCENES
 from selfcontra_ros.datasets._raycast import (
     Box,
     Cylinder,
@@ -59,7 +67,6 @@ __all__ = [
 F64 = NDArray[np.float64]
 F32 = NDArray[np.float32]
 
-SCENES = ("street", "orbit")
 FRAME_RATE_HZ = 10.0
 
 # KITTI odometry grey camera 0/1 of sequence 00 at 1226x370.
@@ -70,7 +77,7 @@ _KITTI_CY = 183.1104
 _KITTI_BASELINE = 0.5372
 
 # Material codes: which texture function colours a primitive.
-_ROAD, _PAVING, _FACADE, _CAR, _POLE, _OBJECT, _GRASS = range(7)
+_ROAD, _PAVING, _FACADE, _CAR, _POLE, _OBJECT, _GRASS, _TILES, _PLASTER, _OUTSIDE, _WOOD = range(11)
 _N_PARAMS = 8
 
 # Direction towards the light (y down: from above, front left); Lambertian plus ambient.
@@ -79,15 +86,20 @@ _AMBIENT = 0.5
 # Grey levels: Gaussian sensor noise and the sky's brightness.
 _NOISE_SIGMA = 1.5
 _SKY = 0.80
+# Brightness of the outside through the room's window relative to white (see SyntheticScene.render_view).
+_OUTSIDE_GAIN = 1.25
 
 
-def kitti_like_camera(width: int = _KITTI_SIZE[0], height: int = _KITTI_SIZE[1]) -> StereoCamera:
+def kitti_like_camera(
+    width: int = _KITTI_SIZE[0], height: int = _KITTI_SIZE[1], *, baseline: float = _KITTI_BASELINE
+) -> StereoCamera:
     """KITTI odometry camera 0/1 intrinsics scaled to ``width`` x ``height``.
 
     At 1226x370 this is KITTI's ``fx = fy = 707.0912``, ``(cx, cy) = (601.8873,
     183.1104)`` and baseline 0.5372 m. Other sizes scale the focal length and
     ``cx`` with the width (the horizontal field of view stays KITTI's) and
     ``cy`` with the height, so the horizon stays at the same relative row.
+    ``baseline`` (metres) replaces KITTI's, e.g. for a MAV's camera.
     """
     if width < 16 or height < 16:
         raise DatasetError(f"synthetic image size must be at least 16x16, got {width}x{height}")
@@ -98,7 +110,7 @@ def kitti_like_camera(width: int = _KITTI_SIZE[0], height: int = _KITTI_SIZE[1])
         fy=_KITTI_FX * sx,
         cx=_KITTI_CX * sx,
         cy=_KITTI_CY * sy,
-        baseline=_KITTI_BASELINE,
+        baseline=float(baseline),
         width=int(width),
         height=int(height),
     )
@@ -237,6 +249,37 @@ def _tex_grass(p: F64, n: F64, fp: F64, prm: F64, noise: ValueNoise) -> F64:
     return (0.40 + 0.2 * noise.fbm(p, fp, 0.25, 9, gain=0.85)).astype(np.float64)
 
 
+def _tex_tiles(p: F64, n: F64, fp: F64, prm: F64, noise: ValueNoise) -> F64:
+    """Square floor tiles, nearly alike (a repetitive pattern), with dark grout. params: tile size (m), albedo."""
+    size, albedo = prm[0], prm[1]
+    # One low-amplitude offset per tile: neighbours differ a little, so matching along a row stays ambiguous.
+    cell = np.stack([np.floor(p[0] / size), np.zeros_like(p[0]), np.floor(p[2] / size)]) * 3.17
+    per_tile = 0.04 * noise.fbm(cell, np.zeros_like(fp), 1.0, 1)
+    grain = 0.03 * noise.fbm(p, fp, 6.0, 4, gain=0.7)
+    grout = np.clip(2.0 - pulse(p[0], size, 0.96, fp) - pulse(p[2], size, 0.96, fp), 0.0, 1.0)
+    return np.clip((albedo + per_tile + grain) * (1.0 - 0.55 * grout), 0.0, 1.0)
+
+
+def _tex_plaster(p: F64, n: F64, fp: F64, prm: F64, noise: ValueNoise) -> F64:
+    """Painted plaster: an almost uniform albedo (walls, ceiling). params: albedo, noise amplitude."""
+    return np.clip(prm[0] * (1.0 + prm[1] * noise.fbm(p, fp, 0.7, 5, gain=0.8)), 0.0, 1.0)
+
+
+def _tex_outside(p: F64, n: F64, fp: F64, prm: F64, noise: ValueNoise) -> F64:
+    """The view out of the window: bright, low in contrast, mostly clipped to white by the exposure. params: albedo."""
+    return np.clip(prm[0] * (1.0 + 0.12 * noise.fbm(p, fp, 0.2, 5, gain=0.7)), 0.0, 1.0)
+
+
+def _tex_wood(p: F64, n: F64, fp: F64, prm: F64, noise: ValueNoise) -> F64:
+    """Wood: grain stretched along one horizontal axis. params: albedo, grain amplitude, grain axis (0 = x, 1 = z)."""
+    albedo, amp, axis = prm[0], prm[1], prm[2]
+    along_x = axis < 0.5
+    stretched = np.stack(
+        [np.where(along_x, p[0] * 0.1, p[0] * 3.0), p[1] * 3.0, np.where(along_x, p[2] * 3.0, p[2] * 0.1)]
+    )
+    return np.clip(albedo * (1.0 + amp * noise.fbm(stretched, fp * 3.0, 2.0, 5, gain=0.75)), 0.0, 1.0)
+
+
 _TEXTURES: dict[int, _Texture] = {
     _ROAD: _tex_road,
     _PAVING: _tex_paving,
@@ -245,6 +288,10 @@ _TEXTURES: dict[int, _Texture] = {
     _POLE: _tex_pole,
     _OBJECT: _tex_object,
     _GRASS: _tex_grass,
+    _TILES: _tex_tiles,
+    _PLASTER: _tex_plaster,
+    _OUTSIDE: _tex_outside,
+    _WOOD: _tex_wood,
 }
 
 
@@ -255,7 +302,7 @@ class SyntheticScene:
     """A static scene of primitives and a camera trajectory; renders exact stereo ground truth.
 
     Args:
-        name: scene name (``street`` or ``orbit``).
+        name: scene name (one of :data:`SCENES`).
         seed: the seed it was built from (recorded; noise streams derive from it).
         camera: the rectified stereo camera.
         primitives: the scene's primitives, scene frame (y down).
@@ -331,10 +378,13 @@ class SyntheticScene:
                 p.take(sel, axis=1), n.take(sel, axis=1), footprint[sel], params.take(prim[sel], axis=1), self._noise
             )
         shade = _AMBIENT + (1.0 - _AMBIENT) * np.maximum(_LIGHT @ n, 0.0)
+        # The outside seen through a window is lit by daylight, not by the room's light: unshaded, and brighter
+        # than white, so the exposure clips it.
+        shade[materials == _OUTSIDE] = _OUTSIDE_GAIN
         # The sky is textureless: a smooth brightening towards the zenith, a function of the ray direction only.
         up = -rays.dirs[1] / np.sqrt(rays.dirs[0] ** 2 + rays.dirs[1] ** 2 + rays.dirs[2] ** 2)
         grey = (255.0 * (_SKY + 0.08 * np.clip(up, 0.0, 1.0))).ravel()
-        grey[idx] = 255.0 * np.clip(albedo, 0.0, 1.0) * shade
+        grey[idx] = 255.0 * np.clip(albedo, 0.0, 1.0) * shade  # the final clip below saturates the outside
         if rng is not None:
             grey = grey + rng.normal(0.0, _NOISE_SIGMA, grey.shape)
         image = np.clip(np.rint(grey), 0, 255).astype(np.uint8).reshape(cam.height, cam.width)
@@ -543,21 +593,156 @@ def _orbit(rng: np.random.Generator, frames: int) -> tuple[list[Primitive], Call
     return prims, trajectory
 
 
+def _room(rng: np.random.Generator, frames: int) -> tuple[list[Primitive], Callable[[NDArray[np.int64]], F64]]:
+    """Primitives and trajectory of the room scene: a furnished room, floor ``y = 0``, centred on the origin.
+
+    The MAV loops around the table at 1.0-1.4 m above the floor, about 0.1 m
+    per frame, looking ahead and inwards with the yaw swinging, pitched down
+    and rolling a little. ``frames`` does not bound anything here (the loop repeats).
+    """
+    width, depth, height = rng.uniform(7.0, 9.0), rng.uniform(6.0, 8.0), rng.uniform(2.6, 3.2)
+    wall = 0.05  # half thickness
+    plaster = (rng.uniform(0.65, 0.85), rng.uniform(0.004, 0.02))
+    prims: list[Primitive] = [GroundPlane(0.0, _TILES, (rng.uniform(0.3, 0.6), rng.uniform(0.45, 0.7)))]
+
+    def slab(
+        center: tuple[float, float, float], half: tuple[float, float, float], material: int, params: tuple[float, ...]
+    ) -> None:
+        prims.append(Box(center, half, material, params))
+
+    # Ceiling, three plain walls, and the window wall (x = +width/2) built around its opening.
+    slab((0.0, -height - wall, 0.0), (width / 2 + 2 * wall, wall, depth / 2 + 2 * wall), _PLASTER, plaster)
+    for z in (-depth / 2 - wall, depth / 2 + wall):
+        slab((0.0, -height / 2, z), (width / 2 + 2 * wall, height / 2, wall), _PLASTER, plaster)
+    slab((-width / 2 - wall, -height / 2, 0.0), (wall, height / 2, depth / 2 + 2 * wall), _PLASTER, plaster)
+    sill, win_h, win_w = rng.uniform(0.8, 1.0), rng.uniform(1.0, 1.5), rng.uniform(1.2, 2.4)
+    win_z = rng.uniform(-depth / 2 + win_w / 2 + 0.5, depth / 2 - win_w / 2 - 0.5)
+    x_wall, top = width / 2 + wall, sill + win_h
+    slab((x_wall, -sill / 2, 0.0), (wall, sill / 2, depth / 2 + 2 * wall), _PLASTER, plaster)
+    slab((x_wall, -(top + height) / 2, 0.0), (wall, (height - top) / 2, depth / 2 + 2 * wall), _PLASTER, plaster)
+    for z0, z1 in ((-depth / 2 - 2 * wall, win_z - win_w / 2), (win_z + win_w / 2, depth / 2 + 2 * wall)):
+        slab((x_wall, -(sill + top) / 2, (z0 + z1) / 2), (wall, win_h / 2, (z1 - z0) / 2), _PLASTER, plaster)
+    slab((width / 2 + rng.uniform(3.0, 5.0), -4.0, win_z), (0.5, 6.0, 12.0), _OUTSIDE, (rng.uniform(0.85, 1.0),))
+    # A framed poster on the wall opposite the window: the one textured patch of wall.
+    slab(
+        (-width / 2 + 0.01, -rng.uniform(1.3, 1.8), rng.uniform(-depth / 4, depth / 4)),
+        (0.01, rng.uniform(0.3, 0.5), rng.uniform(0.4, 0.7)),
+        _OBJECT,
+        (rng.uniform(0.3, 0.7), 0.35, rng.uniform(2.0, 6.0), 0.0, 0.3),
+    )
+
+    def object_params() -> tuple[float, ...]:
+        return (
+            rng.uniform(0.2, 0.8),
+            rng.uniform(0.05, 0.4),
+            rng.uniform(2.0, 12.0),
+            float(rng.integers(0, 3)),
+            rng.uniform(0.03, 0.15),
+        )
+
+    # Shelves against the back wall, cluttered.
+    shelf_w, shelf_d, shelf_h = rng.uniform(1.2, 2.2), 0.3, rng.uniform(1.6, 2.1)
+    shelf_x = rng.uniform(-width / 2 + shelf_w / 2 + 0.2, width / 2 - shelf_w / 2 - 0.6)
+    shelf_z = depth / 2 - shelf_d / 2
+    wood = (rng.uniform(0.3, 0.6), rng.uniform(0.1, 0.3), 0.0)
+    for dx in (-shelf_w / 2, shelf_w / 2):
+        slab((shelf_x + dx, -shelf_h / 2, shelf_z), (0.015, shelf_h / 2, shelf_d / 2), _WOOD, wood)
+    boards = int(rng.integers(3, 6))
+    for level in np.linspace(0.05, shelf_h - 0.02, boards):
+        slab((shelf_x, -float(level), shelf_z), (shelf_w / 2, 0.012, shelf_d / 2), _WOOD, wood)
+        x = shelf_x - shelf_w / 2 + 0.05
+        while level < shelf_h - 0.3 and x < shelf_x + shelf_w / 2 - 0.1:
+            size = rng.uniform(0.04, 0.12)
+            kind = rng.integers(0, 3)
+            base = -float(level) - 0.012
+            if kind == 0:
+                prims.append(Box((x + size, base - size, shelf_z), (size, size, size * 0.8), _OBJECT, object_params()))
+            elif kind == 1:
+                prims.append(Cylinder(x + size, shelf_z, size * 0.6, base - 2.5 * size, base, _OBJECT, object_params()))
+            else:
+                prims.append(Sphere((x + size, base - size, shelf_z), size, _OBJECT, object_params()))
+            x += 2 * size + rng.uniform(0.01, 0.12)
+
+    # A table in the middle of the loop and chairs around it, all on thin legs.
+    table_x, table_z = rng.uniform(-0.4, 0.4), rng.uniform(-0.3, 0.3)
+    top_half = (rng.uniform(0.45, 0.7), 0.02, rng.uniform(0.35, 0.5))
+    table_h = rng.uniform(0.72, 0.78)
+    slab((table_x, -table_h, table_z), top_half, _WOOD, (rng.uniform(0.35, 0.7), rng.uniform(0.1, 0.3), 1.0))
+    for sx in (-1.0, 1.0):
+        for sz in (-1.0, 1.0):
+            lx, lz = table_x + sx * (top_half[0] - 0.05), table_z + sz * (top_half[2] - 0.05)
+            prims.append(Cylinder(lx, lz, 0.025, -table_h + 0.02, 0.0, _POLE, (rng.uniform(0.2, 0.6),)))
+    for side in rng.permutation(4)[: int(rng.integers(2, 5))]:
+        angle = side * np.pi / 2
+        reach = (top_half[0] if side % 2 else top_half[2]) + rng.uniform(0.15, 0.35)
+        cx, cz = table_x + reach * np.sin(angle), table_z + reach * np.cos(angle)
+        seat_h, leg_r = rng.uniform(0.43, 0.48), rng.uniform(0.010, 0.018)
+        paint = rng.uniform(0.15, 0.8)
+        slab((cx, -seat_h, cz), (0.21, 0.02, 0.21), _OBJECT, (paint, 0.1, 4.0, 0.0, 0.2))
+        back = (cx + 0.2 * np.sin(angle), -seat_h - 0.25, cz + 0.2 * np.cos(angle))
+        half_back = (0.015, 0.22, 0.21) if side % 2 else (0.21, 0.22, 0.015)
+        slab(back, half_back, _OBJECT, (paint, 0.1, 4.0, 1.0, 0.08))
+        for sx in (-0.18, 0.18):
+            for sz in (-0.18, 0.18):
+                prims.append(Cylinder(cx + sx, cz + sz, leg_r, -seat_h + 0.02, 0.0, _POLE, (rng.uniform(0.1, 0.7),)))
+
+    # The loop: an ellipse around the table, clear of the walls and shelves.
+    radius_x = width / 2 - rng.uniform(1.4, 1.9)
+    radius_z = depth / 2 - rng.uniform(1.5, 1.9)
+    # A standing lamp close beside the path: a thin pole that comes nearer than the disparity range.
+    lamp_angle = rng.uniform(0.0, 2 * np.pi)
+    lamp_r = 1.0 + rng.uniform(0.12, 0.22) * rng.choice([-1.0, 1.0])
+    lamp_x, lamp_z = lamp_r * radius_x * np.sin(lamp_angle), lamp_r * radius_z * np.cos(lamp_angle)
+    prims.append(Cylinder(lamp_x, lamp_z, 0.02, -1.6, 0.0, _POLE, (rng.uniform(0.2, 0.6),)))
+    prims.append(Sphere((lamp_x, -1.75, lamp_z), 0.17, _OBJECT, (0.9, 0.05, 2.0, 0.0, 0.2)))
+
+    speed = rng.uniform(0.08, 0.12)  # metres per frame
+    step = speed / (0.5 * (radius_x + radius_z)) * rng.choice([-1.0, 1.0])
+    start = rng.uniform(0.0, 2 * np.pi)
+    altitude = rng.uniform(1.0, 1.4)
+    inward = np.deg2rad(rng.uniform(30.0, 50.0))
+    swing, pitch0 = np.deg2rad(rng.uniform(8.0, 15.0)), np.deg2rad(rng.uniform(8.0, 14.0))
+    phase = rng.uniform(0.0, 2 * np.pi, 4)
+
+    def trajectory(indices: NDArray[np.int64]) -> F64:
+        out = []
+        for k in indices.astype(np.float64):
+            theta = start + step * k
+            position = np.array(
+                [radius_x * np.sin(theta), -altitude - 0.15 * np.sin(k / 11.0 + phase[0]), radius_z * np.cos(theta)]
+            )
+            # Along the path (the direction of motion), turned inwards towards the table, swinging.
+            tangent = np.sign(step) * np.array([radius_x * np.cos(theta), -radius_z * np.sin(theta)])
+            heading = np.arctan2(tangent[0], tangent[1])
+            turn = np.sign(step) * inward + swing * np.sin(k / 9.0 + phase[1])
+            pitch = -pitch0 + np.deg2rad(3.0) * np.sin(k / 7.0 + phase[2])
+            roll = np.deg2rad(3.0) * np.sin(k / 5.0 + phase[3])
+            out.append(_pose(_rotation(heading + turn, pitch, roll), position))
+        return np.stack(out)
+
+    return prims, trajectory
+
+
+_BASELINES = {"room": (0.12, 0.2)}
+
+
 def make_scene(
     name: str, seed: int = 1, width: int = _KITTI_SIZE[0], height: int = _KITTI_SIZE[1], *, frames: int = 300
 ) -> SyntheticScene:
-    """Build scene ``name`` (``street`` or ``orbit``) at image size ``width`` x ``height``.
+    """Build scene ``name`` (one of :data:`SCENES`) at image size ``width`` x ``height``.
 
     Object placement, textures and the trajectory are drawn from
     ``numpy.random.default_rng(seed)``, so a seed always gives the same scene.
     ``frames`` bounds how far the street extends (frames past it still render,
     but the street ends).
     """
-    builders = {"street": _street, "orbit": _orbit}
+    builders = {"street": _street, "orbit": _orbit, "room": _room}
     if name not in builders:
         raise DatasetError(f"unknown synthetic scene {name!r}; expected one of {', '.join(SCENES)}")
-    camera = kitti_like_camera(width, height)
     rng = np.random.default_rng(seed)
+    # The room's camera is a MAV's, with a short baseline; drawn first so the rest of the stream is the scene's.
+    baseline = rng.uniform(*_BASELINES[name]) if name in _BASELINES else _KITTI_BASELINE
+    camera = kitti_like_camera(width, height, baseline=baseline)
     noise = ValueNoise(rng)
     prims, trajectory = builders[name](rng, max(int(frames), 1))
     return SyntheticScene(name, seed, camera, prims, trajectory, noise)

@@ -152,6 +152,13 @@ def _photometric_error(
     return float(np.median(err)), mask
 
 
+def _textured(image: NDArray[np.uint8]) -> NDArray[np.bool_]:
+    """Pixels of a noise-free image with a grey-level gradient: where a wrong warp shows (the room is mostly plain)."""
+    grey = image.astype(np.float32)
+    gradient = np.hypot(cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=3), cv2.Sobel(grey, cv2.CV_32F, 0, 1, ksize=3))
+    return gradient > 8.0
+
+
 def _yawed(pose: NDArray[np.float64], degrees: float) -> NDArray[np.float64]:
     """``pose`` with its rotation turned by ``degrees`` about the camera's y axis."""
     c, s = np.cos(np.deg2rad(degrees)), np.sin(np.deg2rad(degrees))
@@ -172,6 +179,9 @@ def test_temporal_reprojection_reproduces_next_frame(small_scene: SyntheticScene
     a, b = small_scene.render(4, noise=False), small_scene.render(5, noise=False)
     good, _ = _photometric_error(a.left, a.depth, b.left, b.depth, cam, t_b_a, visible)
     assert good < 0.6
+    visible &= _textured(a.left)
+    assert visible.mean() > 0.02
+    good, _ = _photometric_error(a.left, a.depth, b.left, b.depth, cam, t_b_a, visible)
     shifted = t_b_a.copy()
     shifted[:3, 3] += [0.3, 0.0, 0.0]
     for wrong in (shifted, _yawed(t_b_a, 1.0)):
@@ -194,6 +204,9 @@ def test_stereo_warp_reproduces_left_image(small_scene: SyntheticScene) -> None:
     f = small_scene.render(6, noise=False)
     good, _ = _photometric_error(f.left, f.depth, f.right, right_depth, cam, t_right_left, visible)
     assert good < 0.6
+    visible &= _textured(f.left)
+    assert visible.mean() > 0.02
+    good, _ = _photometric_error(f.left, f.depth, f.right, right_depth, cam, t_right_left, visible)
     wrong = t_right_left.copy()
     wrong[0, 3] *= 1.3
     bad, _ = _photometric_error(f.left, f.depth, f.right, right_depth, cam, wrong, visible)
