@@ -170,19 +170,24 @@ def test_missing_and_not_a_bag(tmp_path: Path) -> None:
         open_bag(tmp_path / "notes.txt")
 
 
-def test_truncated_bag(sample_bag: Path, tmp_path: Path) -> None:
+def test_a_cut_through_the_only_chunk_leaves_nothing_to_read(sample_bag: Path, tmp_path: Path) -> None:
+    """The sample's 80 messages fit one chunk: cut in half, the bag holds no complete message (test_truncated.py
+    covers bags with complete chunks before the cut)."""
     copy, mcap = _damaged_copy(sample_bag, tmp_path)
-    mcap.write_bytes(mcap.read_bytes()[: mcap.stat().st_size // 2])
-    with pytest.raises(BagError, match="truncated"):
+    size = mcap.stat().st_size
+    mcap.write_bytes(mcap.read_bytes()[: size // 2])
+    with pytest.raises(BagError, match=rf"truncated and holds no complete message: .* \(\d+ of {size // 2:,} bytes"):
         _read_all(copy)
 
 
-def test_unfinished_bag_without_metadata(sample_bag: Path, tmp_path: Path) -> None:
-    """What a killed writer leaves: storage without summary, no metadata.yaml."""
+def test_a_killed_writer_before_its_first_chunk(sample_bag: Path, tmp_path: Path) -> None:
+    """What a writer killed early leaves: a storage file without summary, no metadata.yaml."""
     copy, mcap = _damaged_copy(sample_bag, tmp_path)
     (copy / "metadata.yaml").unlink()
     mcap.write_bytes(mcap.read_bytes()[:5000])
-    with pytest.raises(BagError, match="unfinished"):
+    with pytest.raises(
+        BagError, match=r"holds no complete message: bag\.mcap has no MCAP footer and ends inside a chunk"
+    ):
         open_bag(copy)
 
 
@@ -199,7 +204,9 @@ def test_corrupt_chunk(sample_bag: Path, tmp_path: Path) -> None:
     payload = start + 4 + name_length + 8
     data[payload : payload + 32] = bytes(32)  # destroys the zstd frame header
     mcap.write_bytes(bytes(data))
-    with pytest.raises(BagError, match="corrupt"):
+    with pytest.raises(
+        BagError, match=r"is corrupt: a chunk with /camera/image, /note messages from 0 s to 3\.9 s does "
+    ):
         _read_all(copy)
 
 
@@ -224,3 +231,43 @@ def test_garbage_metadata_and_missing_storage(sample_bag: Path, tmp_path: Path) 
     mcap2.unlink()
     with pytest.raises(BagError, match="cannot open bag"):
         open_bag(copy2)
+
+
+# --------------------------------------------------------------------------- other layouts
+
+
+def test_split_storage_files_merge_in_time_order(tmp_path: Path) -> None:
+    """A bag of several MCAP files (``ros2 bag record --max-bag-size``): one time line, ties in file order."""
+    bag = tmp_path / "bag"
+    bag.mkdir()
+    infos = []
+    for part in range(2):
+        with BagWriter(tmp_path / f"part{part}") as out:
+            for k in range(4):
+                out.write("/a", (2 * k + part) * 10, _string(f"{part}-{k}"))
+            out.write("/b", 25, _string(f"tie {part}"))
+        shutil.copy(tmp_path / f"part{part}" / f"part{part}.mcap", bag / f"bag_{part}.mcap")
+        infos.append(yaml.safe_load((tmp_path / f"part{part}" / "metadata.yaml").read_text()))
+    info = infos[0]["rosbag2_bagfile_information"]
+    info["relative_file_paths"] = ["bag_0.mcap", "bag_1.mcap"]
+    for topic in info["topics_with_message_count"]:
+        topic["message_count"] *= 2
+    (bag / "metadata.yaml").write_text(yaml.safe_dump(infos[0]))
+    with open_bag(bag) as reader:
+        assert reader.recovery is None and reader.message_count == 10
+        assert [m.msg.data for m in reader.messages()] == [
+            "0-0", "1-0", "0-1", "tie 0", "tie 1", "1-1", "0-2", "1-2", "0-3", "1-3"
+        ]  # fmt: skip
+
+
+def test_sqlite_bags_are_read_with_rosbags(tmp_path: Path) -> None:
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    typestore = default_typestore()
+    with Writer(tmp_path / "bag", version=9, storage_plugin=StoragePlugin.SQLITE3) as writer:
+        connection = writer.add_connection("/note", STRING, typestore=typestore)
+        for k in (2, 0, 1):
+            writer.write(connection, k, typestore.serialize_cdr(_string(str(k)), STRING))
+    with open_bag(tmp_path / "bag") as reader:
+        assert (reader.message_count, reader.start_ns, reader.end_ns, reader.recovery) == (3, 0, 2, None)
+        assert [(s, m.data) for _, s, m in reader.messages()] == [(0, "0"), (1, "1"), (2, "2")]
