@@ -61,11 +61,15 @@ with the schema of :func:`selfcontra_ros.pipeline.label_sequence` (frames
 keyed by their index in the bag; label metrics with ground truth, label
 shares without) plus ``output``, ``namespace``, ``status``
 (``complete`` / ``interrupted`` / ``failed``), ``dropped`` (reason -> count),
-``dropped_frames``, ``sync`` (synchroniser counters), ``confidence_params``
-and ``confidence`` (:meth:`OnlineConfidence.stats`: source, samples, models trained).
+``dropped_frames``, ``sync`` (synchroniser counters), ``confidence_params``,
+``confidence`` (:meth:`OnlineConfidence.stats`: source, samples, models trained)
+and ``recovered`` (:attr:`~selfcontra_ros.bags.reader.Bag.recovery`: what a
+truncated input, or one without ``metadata.yaml``, still held; None when intact).
 
-**Failures.** A missing, truncated or corrupt input bag raises
-:class:`~selfcontra_ros.bags.reader.BagError`; an existing output is never
+**Failures.** A missing or corrupt input bag, or a truncated one without a
+complete message, raises :class:`~selfcontra_ros.bags.reader.BagError` (a
+truncated bag is labelled up to its last complete chunk, see
+:func:`~selfcontra_ros.bags.reader.open_bag`); an existing output is never
 overwritten. Bad messages (undecodable, unsupported encoding, size not
 matching the camera info, NaN or non-rigid pose, stamps going backwards, ...)
 are counted in ``dropped`` and skipped with one warning per reason. Ctrl-C
@@ -636,6 +640,7 @@ def label_bag(
             # Beside "params", whose schema stays the sequence labeler's.
             report["confidence_params"] = dataclasses.asdict(confidence_params)
             report["confidence"] = confidence.stats() if confidence is not None else None
+            report["recovered"] = bag.recovery  # what a damaged input still held (Bag.recovery), None if intact
             if out_bag.is_dir():
                 metrics_path(out_bag).write_text(
                     json.dumps(json_safe(report), indent=2, allow_nan=False) + "\n", encoding="utf-8"
