@@ -1,0 +1,245 @@
+"""Label quality over many synthetic sequences: mean, spread and worst case per scene, and the forest they train.
+
+Renders ``--scenes`` x ``--seeds`` sequences (``--frames`` frames at
+``--size``), labels each with the package defaults (or ``--params`` /
+``--set``) exactly as ``selfcontra label`` does, and prints:
+
+* one row per sequence: accuracy, coverage, positive and negative precision,
+  bad recall (share of the query's wrong pixels labelled negative) and the
+  query algorithm's bad-pixel rate, each the mean over the labelled frames;
+* per scene the mean, standard deviation and worst value of each;
+* with ``--confidence``: per scene, the default forest (``ensemble``) trained
+  on the self-generated labels of the first half of the seeds and on their
+  ground truth, both evaluated on the second half (AUSC / optimal), and the
+  ratio self / ground truth (the paper's Table 1 comparison);
+* a PNG (``--plot``) of positive precision and accuracy against the query
+  bad rate, one point per sequence;
+* last, one JSON line with all of it.
+
+Rendered sequences are kept in ``--cache`` (default a temporary folder) so
+that parameter sweeps render once. Examples::
+
+    python bench/label_quality.py --seeds 1-10 --size 613x185 --cache /tmp/lq --confidence
+    python bench/label_quality.py --scenes street --seeds 1-10 --set labeler.stage2_positive_sigma=1.0 --cache /tmp/lq
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from tqdm import tqdm
+
+from selfcontra_ros.cli import parse_size
+from selfcontra_ros.datasets import SCENES
+from selfcontra_ros.datasets.synthetic import write_sequence
+from selfcontra_ros.threads import limit_threads
+
+#: Figures per sequence: (metrics key, column title, True if larger is better).
+FIGURES = (
+    ("accuracy", "accuracy", True),
+    ("coverage", "coverage", True),
+    ("positive_precision", "pos. prec.", True),
+    ("negative_precision", "neg. prec.", True),
+    ("bad_recall", "bad recall", True),
+    ("query_bad_rate", "query bad", False),
+)
+
+
+def parse_seeds(text: str) -> list[int]:
+    """``1-10`` or ``1,3,5`` (or both, e.g. ``1-3,7``) as a sorted list of seeds."""
+    seeds: set[int] = set()
+    for part in text.split(","):
+        first, _, last = part.partition("-")
+        try:
+            seeds.update(range(int(first), int(last or first) + 1))
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected seeds such as 1-10 or 1,3,5, got {text!r}") from None
+    return sorted(seeds)
+
+
+def _parameter_file(params: str | None, overrides: list[str], work: Path) -> Path | None:
+    """The labeler parameter file: ``params`` with ``--set section.key=value`` overrides applied."""
+    if not overrides:
+        return Path(params) if params else None
+    if params:
+        document = yaml.safe_load(Path(params).read_text())
+        body = next(iter(document.values()))["ros__parameters"]
+    else:
+        document = {"labeler": {"ros__parameters": {}}}
+        body = document["labeler"]["ros__parameters"]
+    for item in overrides:
+        key, sep, value = item.partition("=")
+        section, dot, name = key.partition(".")
+        if not sep or not dot:
+            raise SystemExit(f"--set expects section.key=value, got {item!r}")
+        body.setdefault(section, {})[name] = yaml.safe_load(value)
+    path = work / "params.yaml"
+    path.write_text(yaml.safe_dump(document))
+    return path
+
+
+def _sequence(cache: Path, scene: str, seed: int, frames: int, size: tuple[int, int]) -> Path:
+    """The rendered sequence (rendered once per cache)."""
+    root = cache / f"{scene}_s{seed}_f{frames}_{size[0]}x{size[1]}"
+    if not (root / "poses" / "00.txt").is_file():
+        write_sequence(root, scene=scene, frames=frames, seed=seed, width=size[0], height=size[1])
+    return root
+
+
+def _summary(values: list[float], larger_is_better: bool) -> dict[str, float]:
+    finite = [v for v in values if math.isfinite(v)]
+    if not finite:
+        return {"mean": math.nan, "std": math.nan, "worst": math.nan}
+    worst = min(finite) if larger_is_better else max(finite)
+    return {"mean": float(np.mean(finite)), "std": float(np.std(finite)), "worst": float(worst)}
+
+
+def _pct(value: float) -> str:
+    return "   -  " if not math.isfinite(value) else f"{100 * value:6.2f}"
+
+
+def _confidence(scene: str, rows: list[dict[str, Any]], work: Path) -> dict[str, float]:
+    """Ensemble forests trained on self labels / ground truth of the first half of the seeds, scored on the rest."""
+    from selfcontra_ros.confidence.commands import evaluate_command, train_command
+
+    ordered = sorted(rows, key=lambda r: r["seed"])
+    half = len(ordered) // 2
+    train, test = ordered[:half], ordered[half:]
+    if not train or not test:
+        return {}
+    folder = work / f"confidence_{scene}"
+    self_model, gt_model = folder / "self.npz", folder / "gt.npz"
+    train_command([(r["data"], r["labels"]) for r in train], "ensemble", self_model)
+    train_command([(r["data"], "gt") for r in train], "ensemble", gt_model)
+    ratios: dict[str, list[float]] = {"self": [], "gt": [], "lrd": []}
+    for r in test:
+        # Results are keyed by the model files' stems: "self", "gt", and "lrd".
+        results = evaluate_command([self_model, gt_model, "lrd"], r["data"], folder / f"eval_s{r['seed']}")
+        for key, values in ratios.items():
+            values.append(float(results[key]["mean"]["ausc_ratio"]))
+    out = {f"ausc_ratio_{k}": float(np.mean(v)) for k, v in ratios.items() if v}
+    if out.get("ausc_ratio_gt"):
+        out["self_over_gt"] = out["ausc_ratio_self"] / out["ausc_ratio_gt"]
+    out["train_seeds"] = [r["seed"] for r in train]  # type: ignore[assignment]
+    out["test_seeds"] = [r["seed"] for r in test]  # type: ignore[assignment]
+    return out
+
+
+def _plot(rows: list[dict[str, Any]], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharex=True)
+    for scene, marker in zip(SCENES, "os^", strict=True):
+        mine = [r for r in rows if r["scene"] == scene]
+        if not mine:
+            continue
+        bad = [100 * r["query_bad_rate"] for r in mine]
+        for ax, key in zip(axes, ("positive_precision", "accuracy"), strict=True):
+            ax.scatter(bad, [100 * r[key] for r in mine], marker=marker, label=scene)
+            for r, x in zip(mine, bad, strict=True):
+                ax.annotate(str(r["seed"]), (x, 100 * r[key]), fontsize=6, xytext=(2, 2), textcoords="offset points")
+    for ax, title, target in zip(axes, ("positive precision", "accuracy"), (99.0, 97.0), strict=True):
+        ax.axhline(target, color="grey", lw=0.8, ls="--")
+        ax.set_xlabel("query algorithm bad-pixel rate (%)")
+        ax.set_ylabel(f"{title} (%)")
+        ax.set_title(f"{title} per sequence")
+        ax.grid(alpha=0.3)
+    axes[0].legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--scenes", nargs="+", choices=SCENES, default=list(SCENES))
+    parser.add_argument("--seeds", type=parse_seeds, default=parse_seeds("1-10"), help="e.g. 1-10 (default)")
+    parser.add_argument("--frames", type=int, default=30)
+    parser.add_argument("--size", type=parse_size, default=(1226, 370), help="WxH (default KITTI size 1226x370)")
+    parser.add_argument("--params", default=None, help="labeler parameter YAML (default: the package's)")
+    parser.add_argument("--set", action="append", default=[], help="override section.key=value (repeatable)")
+    parser.add_argument("--cache", default=None, help="folder for rendered sequences (kept between runs)")
+    parser.add_argument("--out", default=None, help="folder for labels, models and the plot (default: temporary)")
+    parser.add_argument("--plot", default=None, help="PNG of precision / accuracy vs query bad rate")
+    parser.add_argument("--confidence", action="store_true", help="also train and score the Ensemble forest")
+    parser.add_argument("--threads", type=int, default=0)
+    args = parser.parse_args(argv)
+    limit_threads(args.threads)
+
+    from selfcontra_ros.pipeline import label_sequence
+
+    started = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="label_quality_") as tmp:
+        work = Path(args.out) if args.out else Path(tmp)
+        work.mkdir(parents=True, exist_ok=True)
+        cache = Path(args.cache) if args.cache else work / "sequences"
+        params = _parameter_file(args.params, args.set, work)
+        rows: list[dict[str, Any]] = []
+        jobs = [(scene, seed) for scene in args.scenes for seed in args.seeds]
+        for scene, seed in tqdm(jobs, desc="label quality", unit="seq", file=sys.stderr):
+            data = _sequence(cache, scene, seed, args.frames, args.size)
+            labels = work / "labels" / f"{scene}_s{seed}"
+            tick = time.perf_counter()
+            metrics = label_sequence(data, labels, params_file=params)
+            mean = metrics["mean"]
+            rows.append(
+                {
+                    "scene": scene,
+                    "seed": seed,
+                    "frames": len(metrics["frames"]),
+                    "seconds": time.perf_counter() - tick,
+                    "data": str(data),
+                    "labels": str(labels),
+                    **{key: float(mean.get(key, math.nan)) for key, _, _ in FIGURES},
+                }
+            )
+        scenes: dict[str, Any] = {}
+        print(f"{'scene':<7} {'seed':>4} " + " ".join(f"{title:>10}" for _, title, _ in FIGURES))
+        for scene in args.scenes:
+            mine = [r for r in rows if r["scene"] == scene]
+            for r in mine:
+                print(f"{scene:<7} {r['seed']:>4} " + " ".join(f"{_pct(r[k]):>10}" for k, _, _ in FIGURES))
+            scenes[scene] = {key: _summary([r[key] for r in mine], better) for key, _, better in FIGURES}
+            for stat in ("mean", "std", "worst"):
+                print(f"{scene:<7} {stat:>4} " + " ".join(f"{_pct(scenes[scene][k][stat]):>10}" for k, _, _ in FIGURES))
+        if args.confidence:
+            for scene in tqdm(args.scenes, desc="confidence", unit="scene", file=sys.stderr):
+                result = _confidence(scene, [r for r in rows if r["scene"] == scene], work)
+                scenes[scene]["confidence"] = result
+                if result:
+                    print(
+                        f"{scene}: Ensemble AUSC/optimal on seeds {result['test_seeds']}: self-labels "
+                        f"{result['ausc_ratio_self']:.3f}, ground truth {result['ausc_ratio_gt']:.3f}, "
+                        f"ratio {result['self_over_gt']:.3f} (LRD {result['ausc_ratio_lrd']:.3f})"
+                    )
+        if args.plot:
+            _plot(rows, Path(args.plot))
+            print(f"plot: {args.plot}")
+        summary = {
+            "size": f"{args.size[0]}x{args.size[1]}",
+            "frames": args.frames,
+            "seeds": args.seeds,
+            "params": str(args.params) if args.params else None,
+            "set": args.set,
+            "scenes": scenes,
+            "sequences": [{k: v for k, v in r.items() if k not in ("data", "labels")} for r in rows],
+            "seconds": time.perf_counter() - started,
+        }
+    print(json.dumps(summary, allow_nan=True))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
