@@ -28,6 +28,8 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
+import shutil
 import sys
 import tempfile
 import time
@@ -88,10 +90,13 @@ def _parameter_file(params: str | None, overrides: list[str], work: Path) -> Pat
 
 
 def _sequence(cache: Path, scene: str, seed: int, frames: int, size: tuple[int, int]) -> Path:
-    """The rendered sequence (rendered once per cache)."""
+    """The rendered sequence, rendered once per cache (into a temporary name, then renamed: never half a sequence)."""
     root = cache / f"{scene}_s{seed}_f{frames}_{size[0]}x{size[1]}"
-    if not (root / "poses" / "00.txt").is_file():
-        write_sequence(root, scene=scene, frames=frames, seed=seed, width=size[0], height=size[1])
+    if not root.is_dir():
+        partial = root.with_name(f".{root.name}.{os.getpid()}.partial")
+        shutil.rmtree(partial, ignore_errors=True)
+        write_sequence(partial, scene=scene, frames=frames, seed=seed, width=size[0], height=size[1])
+        partial.rename(root)
     return root
 
 
