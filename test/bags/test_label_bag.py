@@ -269,7 +269,8 @@ def test_interruption_leaves_a_readable_bag(in_bag: Path, tmp_path: Path, monkey
     assert report["status"] == "interrupted"
 
 
-def test_truncated_or_corrupt_input_raises_bag_error(in_bag: Path, tmp_path: Path) -> None:
+def test_unreadable_or_corrupt_input_raises_bag_error(in_bag: Path, tmp_path: Path) -> None:
+    """Nothing readable before the cut, or a damaged chunk: refused or stopped (test_truncated.py: cuts it survives)."""
     truncated = tmp_path / "truncated"
     shutil.copytree(in_bag, truncated)
     mcap = next(truncated.glob("*.mcap"))
@@ -287,7 +288,7 @@ def test_truncated_or_corrupt_input_raises_bag_error(in_bag: Path, tmp_path: Pat
     damaged = bytearray(data)
     damaged[len(data) // 2 : len(data) // 2 + 2000] = bytes(2000)
     mcap.write_bytes(bytes(damaged))
-    with pytest.raises(BagError, match=r"corrupt or truncated"):
+    with pytest.raises(BagError, match=r"is corrupt: a chunk with .* messages from"):
         label_bag(truncated, tmp_path / "out4", params_file=FLUSH, progress=False)
     with open_bag(tmp_path / "out4") as bag:
         assert len(list(bag.raw_messages())) == bag.message_count
