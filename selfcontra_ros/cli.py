@@ -55,14 +55,11 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     return 0
 
 
-def _is_bag(path: Path) -> bool:
-    """Whether ``path`` is a rosbag2 bag (a folder with metadata.yaml, or an .mcap file)."""
-    return (path.is_dir() and (path / "metadata.yaml").is_file()) or (path.is_file() and path.suffix == ".mcap")
-
-
 def _cmd_label(args: argparse.Namespace) -> int:
+    from selfcontra_ros.bags.reader import is_bag
+
     source, out = Path(args.input), Path(args.out)
-    if _is_bag(source):
+    if is_bag(source):
         from selfcontra_ros.bags.label_bag import label_bag, metrics_path
 
         if args.frames is not None:

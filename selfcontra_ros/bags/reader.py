@@ -89,7 +89,7 @@ from selfcontra_ros.errors import SelfContraError
 # Newest first: the first store this rosbags version knows is used.
 _STORE_PREFERENCE = ("ROS2_KILTED", "ROS2_JAZZY", "ROS2_HUMBLE")
 
-__all__ = ["Bag", "BagError", "BagMessage", "RawMessage", "TopicSummary", "default_typestore", "open_bag"]
+__all__ = ["Bag", "BagError", "BagMessage", "RawMessage", "TopicSummary", "default_typestore", "is_bag", "open_bag"]
 
 _LOG = logging.getLogger(__name__)
 
@@ -1132,6 +1132,18 @@ def _storage_kind(metadata: _Metadata) -> str:
         return metadata.storage
     suffixes = {PurePath(name).suffix for name in metadata.files}
     return {".mcap": "mcap", ".db3": "sqlite3"}.get(suffixes.pop(), "") if len(suffixes) == 1 else ""
+
+
+def is_bag(path: Path | str) -> bool:
+    """Whether ``path`` is for :func:`open_bag`: an ``.mcap`` file, or a folder with ``metadata.yaml`` or storage files.
+
+    A folder holding ``.mcap`` (or ``.db3``) files but no ``metadata.yaml`` counts: its writer was killed,
+    and :func:`open_bag` recovers it (or says why it cannot).
+    """
+    path = Path(path)
+    if path.is_dir():
+        return (path / "metadata.yaml").is_file() or any(path.glob("*.mcap")) or any(path.glob("*.db3"))
+    return path.suffix == ".mcap"
 
 
 def open_bag(path: Path | str) -> Bag:

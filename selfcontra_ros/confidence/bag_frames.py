@@ -34,7 +34,7 @@ from numpy.typing import NDArray
 
 from selfcontra_ros.bags import topics
 from selfcontra_ros.bags.label_bag import resolve_namespace
-from selfcontra_ros.bags.reader import BagError, open_bag
+from selfcontra_ros.bags.reader import BagError, is_bag, open_bag
 from selfcontra_ros.bags.sync import StampSynchronizer
 from selfcontra_ros.datasets.kitti import StereoFrame
 from selfcontra_ros.errors import CalibrationError, ConversionError
@@ -55,13 +55,6 @@ _NS_PER_S = 1_000_000_000
 #: How long (log time) a frame waits for its ground truth after its stamp, nanoseconds; as label_bag's pose wait.
 _GT_WAIT_NS = _NS_PER_S // 2
 _ENCODINGS = ("mono8", "rgb8", "bgr8")
-
-
-def is_bag(path: Path | str) -> bool:
-    """Whether ``path`` names a rosbag2 bag: a folder with ``metadata.yaml``, or an ``.mcap`` file (even a missing one,
-    so that opening it reports the missing bag rather than a missing dataset)."""
-    path = Path(path)
-    return (path.is_dir() and (path / "metadata.yaml").is_file()) or (not path.is_dir() and path.suffix == ".mcap")
 
 
 @dataclass

@@ -39,7 +39,7 @@ from tqdm import tqdm
 
 from selfcontra_ros import interrupts
 from selfcontra_ros.bags import topics
-from selfcontra_ros.bags.reader import BagError, open_bag
+from selfcontra_ros.bags.reader import BagError, is_bag, open_bag
 from selfcontra_ros.bags.sync import StampSynchronizer
 from selfcontra_ros.datasets.kitti import OdometrySequence, StereoScene, open_sequence, write_poses
 from selfcontra_ros.geometry import StereoCamera
@@ -316,10 +316,6 @@ def write_quality(csv_path: Path | str, qualities: list[FrameQuality]) -> None:
             writer.writerow(asdict(q))
 
 
-def _is_bag(path: Path) -> bool:
-    return path.suffix == ".mcap" or (path.is_dir() and (path / "metadata.yaml").is_file())
-
-
 def odometry_command(
     input_path: Path | str,
     out: Path | str,
@@ -357,7 +353,7 @@ def odometry_command(
     input_path, out = Path(input_path), Path(out)
     started = time.perf_counter()
     ground_truth = None
-    if _is_bag(input_path):
+    if is_bag(input_path):
         _, poses, qualities = estimate_bag_poses(input_path, namespace=namespace, params=params, progress=progress)
     else:
         seq = open_sequence(input_path, sequence=sequence)
