@@ -5,6 +5,16 @@ Each reference below works point by point with full 3x3 matrices and
 DESIGN section 2 and 3 state the computations; the package's kernels must
 agree with them on 8x12 images with invalid pixels, points behind the camera,
 points outside the image, exact half-pixel projections and z-buffer ties.
+
+Where a float threshold decides (rounding to a pixel, ``alpha_min`` and its
+bins, ``sigma_max``, the Stage-3 vote), the kernels and these references
+compute the deciding quantity by different formulas, and the references
+partly with numpy's BLAS/LAPACK, whose kernels differ from CPU to CPU: the
+two agree to about 1e-13 relative, not to the bit. A decision that close to
+its threshold may go either way on another machine, so the comparisons skip
+the few points whose quantity lies within :data:`DOUBT` of a threshold (none
+in these scenes, whose decisions keep at least 1e-5 of margin) and require
+them to stay rare; everywhere else the results must be equal.
 """
 
 from __future__ import annotations
@@ -25,6 +35,9 @@ from selfcontra_ros.window import View, make_view
 CAM = StereoCamera(fx=10.0, fy=10.0, cx=5.5, cy=3.5, baseline=0.5, width=12, height=8)
 SIGMA_PX = 1.0
 SIGMA_MAX = 2.0
+#: Relative distance (absolute in pixels for the rounding) to a threshold within which a decision counts as a tie
+#: (module docstring): far above the 1e-13 the formulas differ by, far below the 1e-5 margin of the scenes.
+DOUBT = 1e-9
 
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -41,6 +54,44 @@ def _ref_pixel(point: np.ndarray) -> int:
     if 0 <= col <= CAM.width - 1 and 0 <= row <= CAM.height - 1:
         return row * CAM.width + col
     return -1
+
+
+def _near(value: float, threshold: float) -> bool:
+    """Whether ``value`` lies within :data:`DOUBT` of ``threshold`` (relative, absolute below 1)."""
+    return abs(value - threshold) <= DOUBT * max(abs(threshold), 1.0)
+
+
+def _half_tie(coordinate: float) -> bool:
+    """Whether a pixel coordinate lies within DOUBT of a half pixel, but not on it.
+
+    Exactly on it is no tie between implementations: such values come from exact arithmetic (the hand-made
+    cases, a coordinate 0 that a rotation about the y axis keeps), which every implementation reproduces.
+    """
+    offset = coordinate - math.floor(coordinate)
+    return offset != 0.5 and _near(offset, 0.5)
+
+
+def _pixel_doubtful(point: np.ndarray) -> bool:
+    """Whether the nearest pixel of a left-frame point is a rounding tie (:func:`_half_tie` of u or v)."""
+    x, y, z = (float(c) for c in point)
+    if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)) or z <= 0:
+        return False
+    return _half_tie(CAM.fx * x / z + CAM.cx) or _half_tie(CAM.fy * y / z + CAM.cy)
+
+
+def _tie_pixels(point: np.ndarray) -> list[int]:
+    """The pixels (flat, inside the image) a point whose rounding is a tie may go to: both sides of each tie."""
+    x, y, z = (float(c) for c in point)
+    u, v = CAM.fx * x / z + CAM.cx, CAM.fy * y / z + CAM.cy
+    cols = {math.floor(u), math.ceil(u)} if _half_tie(u) else {round(u)}
+    rows = {math.floor(v), math.ceil(v)} if _half_tie(v) else {round(v)}
+    return [r * CAM.width + c for r in rows for c in cols if 0 <= r < CAM.height and 0 <= c < CAM.width]
+
+
+def _assert_equal_unless_doubtful(got: np.ndarray, want: np.ndarray, doubtful: np.ndarray) -> None:
+    """``got == want`` wherever the reference's decisions were clear; the ties must stay rare."""
+    assert doubtful.mean() < 0.01, f"{int(doubtful.sum())} of {doubtful.size} pixels decided at a tie"
+    np.testing.assert_array_equal(got[~doubtful], want[~doubtful])
 
 
 def _apply(pose: np.ndarray, point: np.ndarray) -> np.ndarray:
@@ -83,32 +134,50 @@ def _ref_angle(point: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
     return math.degrees(math.acos(min(max(cos, -1.0), 1.0)))
 
 
-def _ref_support_bits(query: View, ref: View, mode: str, alpha_min: float) -> np.ndarray:
+def _ref_support_bits(query: View, ref: View, mode: str, alpha_min: float) -> tuple[np.ndarray, np.ndarray]:
+    """Stage-1 bits of ``query`` from ``ref``, and the pixels decided at a tie (pixel, angle, bin or tolerance)."""
     bits = np.zeros(query.valid.size, dtype=np.uint64)
+    doubtful = np.zeros(query.valid.size, dtype=bool)
     ref_from_query = np.linalg.inv(ref.pose) @ query.pose
     centre_q = np.array([0.5 * CAM.baseline, 0.0, 0.0])
     centre_r = _apply(np.linalg.inv(query.pose), ref.centre)
     for i in np.flatnonzero(query.valid):
         x_q = query.points[i].astype(np.float64)
-        j = _ref_pixel(_apply(ref_from_query, x_q))
+        in_ref = _apply(ref_from_query, x_q)
+        doubtful[i] = _pixel_doubtful(in_ref)
+        j = _ref_pixel(in_ref)
         if j < 0 or not ref.valid[j]:
             continue
         alpha = _ref_angle(x_q, centre_r, centre_q)
+        doubtful[i] |= _near(alpha / alpha_min, round(alpha / alpha_min))  # alpha_min itself or a bin edge
         if alpha <= alpha_min:
             continue
-        if _ref_tolerance_sq(mode, x_q, ref.points[j].astype(np.float64), ref_from_query) <= SIGMA_MAX**2:
+        x_r = ref.points[j].astype(np.float64)
+        if mode == "smaller":  # which covariance the test uses
+            doubtful[i] |= _near(_ref_u(x_q), _ref_u(x_r))
+        m2 = _ref_tolerance_sq(mode, x_q, x_r, ref_from_query)
+        doubtful[i] |= _near(m2, SIGMA_MAX**2)
+        if m2 <= SIGMA_MAX**2:
             bits[i] |= np.uint64(1) << np.uint64(min(int(alpha // alpha_min), MAX_BINS - 1))
-    return bits
+    return bits, doubtful
 
 
-def _ref_augmented_depth(query: View, refs: list[View], pending: np.ndarray, min_votes: int) -> np.ndarray:
-    """Per pending pixel: all splatted candidates nearest first; the first one the relaxed vote validates."""
+def _ref_augmented_depth(
+    query: View, refs: list[View], pending: np.ndarray, min_votes: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per pending pixel: all splatted candidates nearest first; the first one the relaxed vote validates.
+
+    Returns the augmented depth and the pixels decided at a tie (a candidate's pixel, a lookup's pixel or a vote).
+    """
     candidates: dict[int, list[float]] = {}
+    doubtful = np.zeros(query.valid.size, dtype=bool)
     for ref in refs:
         query_from_ref = np.linalg.inv(query.pose) @ ref.pose
         for s in np.flatnonzero(ref.valid):
             p = _apply(query_from_ref, ref.points[s])
             pixel = _ref_pixel(p)
+            if _pixel_doubtful(p):  # the candidate may go to either pixel of the tie: doubt both
+                doubtful[_tie_pixels(p)] = True
             if pixel >= 0 and pending[pixel]:
                 candidates.setdefault(pixel, []).append(float(p[2]))
     z_aug = np.full(query.valid.size, np.nan)
@@ -120,12 +189,14 @@ def _ref_augmented_depth(query: View, refs: list[View], pending: np.ndarray, min
             plus = total = 0
             for view in refs:
                 in_ref = _apply(np.linalg.inv(view.pose) @ query.pose, point)
+                doubtful[pixel] |= _pixel_doubtful(in_ref)
                 j = _ref_pixel(in_ref)
                 if j < 0 or not view.valid[j]:
                     continue
                 range_c = np.linalg.norm(in_ref)
                 range_r = np.linalg.norm(view.points[j].astype(np.float64))
                 tol = (math.sqrt(_ref_u(point)) + math.sqrt(float(view.u[j]))) * SIGMA_MAX
+                doubtful[pixel] |= _near(abs(range_c - range_r), tol) or _near(range_c, range_r)
                 if abs(range_c - range_r) <= tol:
                     plus, total = plus + 1, total + 1
                 elif range_c < range_r:
@@ -133,7 +204,7 @@ def _ref_augmented_depth(query: View, refs: list[View], pending: np.ndarray, min
             if plus >= min_votes and total > 0:
                 z_aug[pixel] = depth
                 break
-    return z_aug
+    return z_aug, doubtful
 
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -211,15 +282,19 @@ def test_lookup_matches_reference() -> None:
     pose = _pose(7.0, (0.3, -0.1, 0.2))
     ref_valid = rng.random(CAM.width * CAM.height) < 0.7
     found = lookup(points, pose, CAM, ref_valid)
+    ties = 0
     for k, p in enumerate(points):
         moved = _apply(pose, p)
+        if _pixel_doubtful(moved):  # a rounding tie: either neighbour may be found (module docstring)
+            ties += 1
+            continue
         pixel = _ref_pixel(moved)
         assert found.ok[k] == (pixel >= 0 and ref_valid[pixel])
         if found.ok[k]:
             assert found.ref_index[k] == pixel
         if np.all(np.isfinite(moved)):
             np.testing.assert_allclose(found.points_in_ref[k], moved, rtol=1e-12, atol=1e-12)
-    assert 20 < found.ok.sum() < len(points)
+    assert 20 < found.ok.sum() < len(points) and ties <= 2
 
 
 def test_splat_all_and_nearest_match_reference_with_ties() -> None:
@@ -227,9 +302,18 @@ def test_splat_all_and_nearest_match_reference_with_ties() -> None:
     points = _edge_points(rng)
     pose = _pose(-5.0, (0.1, 0.0, -0.2))
     # Two coincident points nearer than any random one: a z-buffer tie (the later one is kept); a farther third.
-    tie_in_query = np.array([[0.03, 0.015, 0.3], [0.03, 0.015, 0.3], [0.036, 0.018, 0.36]])
-    tie = (np.linalg.inv(pose) @ np.c_[tie_in_query, np.ones(3)].T).T[:, :3]
+    # The coincident pair is one transformed point twice: two rows of one BLAS product may differ in the last bit.
+    tie_in_query = np.array([[0.03, 0.015, 0.3], [0.036, 0.018, 0.36]])
+    tie = (np.linalg.inv(pose) @ np.c_[tie_in_query, np.ones(2)].T).T[[0, 0, 1], :3]
     points = np.vstack([points, tie])
+    # The pixel and the depth order of each splat are the same on every CPU: no rounding tie, and no two distinct
+    # points at one pixel within DOUBT of each other's depth (module docstring).
+    moved = np.array([_apply(pose, p) for p in points])
+    assert not any(_pixel_doubtful(m) for m in moved)
+    pixel_of = np.array([_ref_pixel(m) for m in moved])
+    for pixel in set(pixel_of[pixel_of >= 0].tolist()):
+        depths = np.unique(moved[pixel_of == pixel, 2])  # coincident points count once
+        assert depths.size < 2 or np.min(np.diff(depths) / depths[:-1]) > DOUBT
     source = np.arange(len(points), dtype=np.int64) * 3 + 1  # any labels, distinct from the row numbers
     splat = splat_all(points, source, pose, CAM)
     expected = [(_ref_pixel(_apply(pose, p)), _apply(pose, p)[2], s) for p, s in zip(points, source, strict=True)]
@@ -310,7 +394,7 @@ def test_support_bits_match_reference(mode: str) -> None:
             got = support_bits(
                 query, ref, CAM, alpha_min_deg=10.0, sigma_max=SIGMA_MAX, sigma_px=SIGMA_PX, tolerance=mode
             )
-            np.testing.assert_array_equal(got, _ref_support_bits(query, ref, mode, 10.0))
+            _assert_equal_unless_doubtful(got, *_ref_support_bits(query, ref, mode, 10.0))
             total_set += int(np.count_nonzero(got))
     assert total_set > 20  # the scenes do produce support, so equality is not vacuous
 
@@ -319,15 +403,21 @@ def test_update_support_is_both_directions_of_support_bits() -> None:
     views = _views(seed=12)
     new, others = views[-1], views[:-1]
     expected_new = np.zeros_like(new.support_bits)
+    doubtful_new = np.zeros(new.valid.size, dtype=bool)
     expected_others = [v.support_bits.copy() for v in others]
+    doubtful_others = [np.zeros(v.valid.size, dtype=bool) for v in others]
     kw = {"alpha_min_deg": 10.0, "sigma_max": SIGMA_MAX, "sigma_px": SIGMA_PX, "tolerance": "smaller"}
     for k, other in enumerate(others):
-        expected_new |= _ref_support_bits(new, other, "smaller", 10.0)
-        expected_others[k] |= _ref_support_bits(other, new, "smaller", 10.0)
+        bits, doubtful = _ref_support_bits(new, other, "smaller", 10.0)
+        expected_new |= bits
+        doubtful_new |= doubtful
+        bits, doubtful = _ref_support_bits(other, new, "smaller", 10.0)
+        expected_others[k] |= bits
+        doubtful_others[k] |= doubtful
     update_support(new, others, CAM, **kw)
-    np.testing.assert_array_equal(new.support_bits, expected_new)
-    for other, expected in zip(others, expected_others, strict=True):
-        np.testing.assert_array_equal(other.support_bits, expected)
+    _assert_equal_unless_doubtful(new.support_bits, expected_new, doubtful_new)
+    for other, expected, doubtful in zip(others, expected_others, doubtful_others, strict=True):
+        _assert_equal_unless_doubtful(other.support_bits, expected, doubtful)
 
 
 @pytest.mark.parametrize("min_votes", [1, 2])
@@ -346,9 +436,10 @@ def test_augmented_depth_matches_reference(min_votes: int) -> None:
         reading="std",
         min_positive_votes=min_votes,
     )
-    want = _ref_augmented_depth(query, refs, pending, min_votes)
-    np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
-    np.testing.assert_allclose(got[~np.isnan(got)], want[~np.isnan(want)], rtol=1e-12)
+    want, doubtful = _ref_augmented_depth(query, refs, pending, min_votes)
+    _assert_equal_unless_doubtful(np.isnan(got), np.isnan(want), doubtful)
+    both = ~doubtful & ~np.isnan(want)
+    np.testing.assert_allclose(got[both], want[both], rtol=1e-12)
     assert np.count_nonzero(~np.isnan(got)) > 10
     assert np.all(np.isnan(got[~pending]))
 
@@ -364,9 +455,10 @@ def test_augmented_depth_prefers_the_nearest_valid_candidate_over_a_nearer_inval
     got = augmented_depth(
         query, refs, pending, CAM, sigma_max=SIGMA_MAX, sigma_px=SIGMA_PX, reading="std", min_positive_votes=2
     )
-    want = _ref_augmented_depth(query, refs, pending, 2)
-    np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
-    np.testing.assert_allclose(got[~np.isnan(got)], want[~np.isnan(want)], rtol=1e-12)
+    want, doubtful = _ref_augmented_depth(query, refs, pending, 2)
+    _assert_equal_unless_doubtful(np.isnan(got), np.isnan(want), doubtful)
+    both = ~doubtful & ~np.isnan(want)
+    np.testing.assert_allclose(got[both], want[both], rtol=1e-12)
     hit = _ref_pixel(_apply(np.linalg.inv(query.pose) @ refs[0].pose, refs[0].points[j]))
     if hit >= 0 and pending[hit]:
         near = float(_apply(np.linalg.inv(query.pose) @ refs[0].pose, refs[0].points[j])[2])
