@@ -4,6 +4,12 @@ The scenes are small (64x48): a back wall and a box in front of it, rendered exa
 then spoiled on purpose (disparity noise, gross errors, unsupported pixels) so that every branch of the vote
 happens: positives, occlusions, free-space violations, outlines that suppress them, the band between the two
 tolerances, and less accurate references.
+
+The slow reference decides with the package's own projection and tolerance functions, which the kernels share
+(same arithmetic, same bits), except for the observation angle and the occlusion's range comparison, which it
+computes with numpy (BLAS dot products, whose kernels differ per CPU). Those two decisions may go either way on
+another machine when they lie within :data:`DOUBT` of their threshold; the comparison leaves such pixels out
+(there are none in the scene: its margins are 3e-6 and more) and requires them to stay rare.
 """
 
 from __future__ import annotations
@@ -28,6 +34,9 @@ TARGET = np.array([0.0, 0.0, 8.0])
 WALL_Z = 8.0
 #: Box front face: z, x range, y range (world, metres).
 BOX = (5.0, (-0.5, 0.2), (-0.3, 0.4))
+#: Relative distance to a threshold within which the reference's numpy decisions count as ties (module docstring):
+#: far above the 1e-15 by which numpy and the kernels round differently, far below the scene's margins.
+DOUBT = 1e-9
 
 
 def _pose(theta_deg: float, radius: float = 7.0) -> np.ndarray:
@@ -119,9 +128,13 @@ def _slow_votes(
     negatives_from_any: bool,
     free_space: bool,
     radius: int,
-) -> np.ndarray:
-    """One reference's vote per query pixel, pixel by pixel, as DESIGN section 3 states the rules."""
+) -> tuple[np.ndarray, np.ndarray]:
+    """One reference's vote per query pixel, pixel by pixel, as DESIGN section 3 states the rules.
+
+    Returns the votes and the pixels whose angle or range comparison was a tie (module docstring).
+    """
     votes = np.zeros(query.valid.size)
+    doubtful = np.zeros(query.valid.size, dtype=bool)
     ref_from_query = ref.from_view(query)
     support = support_count(ref.support_bits)
     nearest = _slow_splat(query, ref) if free_space else {}
@@ -141,14 +154,19 @@ def _slow_votes(
                 x_r = ref.points[j].astype(np.float64)
                 distance = math.sqrt(_tol_sq(tolerance, query, ref, q, x_r, u_r))
                 weight = float(support[j]) / math.sqrt(u_r)
+                range_q, range_r = np.linalg.norm(x_in_r[0]), np.linalg.norm(x_r)
                 if distance <= positive_sigma and accurate:
                     a, b = centre_r - x_q, centre_q - x_q
                     angle = math.degrees(math.acos(np.clip(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)), -1, 1)))
+                    doubtful[q] = min_angle_deg > 0 and abs(angle - min_angle_deg) <= DOUBT * min_angle_deg
                     vote = weight if min_angle_deg <= 0 or angle > min_angle_deg else 0.0
-                elif distance > negative_sigma and np.linalg.norm(x_in_r[0]) < np.linalg.norm(x_r):
+                elif distance > negative_sigma and range_q < range_r:
+                    doubtful[q] = range_r - range_q <= DOUBT * range_r
                     vote = -weight  # occlusion: X_q blocks the reference's line of sight
                 elif distance <= negative_sigma and accurate:
                     vote = 0.0  # agrees roughly: decided, no vote
+                elif distance > negative_sigma:
+                    doubtful[q] = range_q - range_r <= DOUBT * range_r  # just not an occlusion
         if vote is None and q in nearest:
             s = nearest[q]
             u_s = float(ref.u[s])
@@ -167,7 +185,7 @@ def _slow_votes(
                 if not outline:
                     vote = -float(support[s]) / math.sqrt(u_s)  # free-space violation
         votes[q] = 0.0 if vote is None else vote
-    return votes
+    return votes, doubtful
 
 
 OPTIONS = [
@@ -194,10 +212,12 @@ def test_consistency_voting_matches_slow_reference(options: dict) -> None:
     } | options
     expected_sum = np.zeros(query.valid.size)
     expected_voted = np.zeros(query.valid.size, dtype=bool)
+    doubtful = np.zeros(query.valid.size, dtype=bool)
     for ref in refs:  # in window order, as the votes are summed
-        votes = _slow_votes(query, ref, **o)
+        votes, ties = _slow_votes(query, ref, **o)
         expected_sum += votes
         expected_voted |= votes != 0
+        doubtful |= ties
     result = consistency_voting(
         query,
         refs,
@@ -212,10 +232,12 @@ def test_consistency_voting_matches_slow_reference(options: dict) -> None:
         positive_sigma=o["positive_sigma"],
         negative_sigma=o["negative_sigma"],
     )
-    np.testing.assert_array_equal(result.voted, expected_voted)
-    np.testing.assert_allclose(result.vote_sum, expected_sum, rtol=1e-12, atol=0.0)
+    assert doubtful.mean() < 0.01, f"{int(doubtful.sum())} pixels decided at a tie"
+    clear = ~doubtful
+    np.testing.assert_array_equal(result.voted[clear], expected_voted[clear])
+    np.testing.assert_allclose(result.vote_sum[clear], expected_sum[clear], rtol=1e-12, atol=0.0)
     expected_labels = np.where(expected_sum > 0, POSITIVE, np.where(expected_sum < 0, NEGATIVE, UNKNOWN))
-    np.testing.assert_array_equal(result.labels, np.where(expected_voted, expected_labels, UNKNOWN))
+    np.testing.assert_array_equal(result.labels[clear], np.where(expected_voted, expected_labels, UNKNOWN)[clear])
     # The scene must exercise both signs, or the comparison proves little.
     assert (expected_sum > 0).sum() > 50 and (expected_sum < 0).sum() > 10
 
@@ -225,9 +247,9 @@ def test_scene_exercises_every_kind_of_vote() -> None:
     query, refs = _scene(seed=3)
     base = {"tolerance": "sum", "positive_sigma": 1.5, "negative_sigma": 3.0, "min_angle_deg": 0.0}
     ref = refs[2]
-    lookup_only = _slow_votes(query, ref, **base, negatives_from_any=False, free_space=False, radius=0)
-    with_splat = _slow_votes(query, ref, **base, negatives_from_any=False, free_space=True, radius=0)
-    with_outline = _slow_votes(query, ref, **base, negatives_from_any=False, free_space=True, radius=2)
+    lookup_only, _ = _slow_votes(query, ref, **base, negatives_from_any=False, free_space=False, radius=0)
+    with_splat, _ = _slow_votes(query, ref, **base, negatives_from_any=False, free_space=True, radius=0)
+    with_outline, _ = _slow_votes(query, ref, **base, negatives_from_any=False, free_space=True, radius=2)
     free_space = (with_splat < 0) & (lookup_only == 0)
     assert free_space.sum() > 5
     assert ((with_outline == 0) & free_space).sum() > 0  # some suppressed as outlines
