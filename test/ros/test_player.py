@@ -137,7 +137,10 @@ def test_player_replays_every_message_bit_exact_with_recorded_timing(
     expected = (recorded[LEFT][-1][0] - recorded[LEFT][0][0]) / 1e9 / rate  # 0.2 s: 4 periods of 0.1 s at rate 2
     span = arrivals[-1] - arrivals[0]
     assert abs(span - expected) < 0.1, f"frames spread over {span:.3f} s, expected {expected:.3f} s"
-    assert np.all(np.diff(arrivals) > 0.02), f"intervals {np.diff(arrivals)} (expected about 0.05 s)"
+    # Paced, not sent at once: the typical interval, since on a loaded machine one late delivery makes the next
+    # interval short without the player being at fault.
+    intervals = np.diff(arrivals)
+    assert 0.03 < np.median(intervals) < 0.08, f"intervals {intervals} (expected about 0.05 s)"
     assert "done: published 30 messages" in player.stderr() + player.stdout()
 
 
@@ -235,7 +238,10 @@ def test_looping_a_single_instant_keeps_the_default_pace(
         start = time.monotonic()
         spin_until(node, lambda: time.monotonic() - start > 0.5, 2.0)
         passes = node.counts["/note"]
+        elapsed = time.monotonic() - start
     finally:
         node.destroy_node()
-    assert 6 <= passes <= 12, f"{passes} passes in 0.5 s at 20 passes/s"
+    # At most one pass per 0.05 s of the time actually spun (a busy loop gives thousands); at least a few, fewer
+    # than 10 only when a loaded machine delays the timer.
+    assert 2 <= passes <= 20 * elapsed + 2, f"{passes} passes in {elapsed:.2f} s at 20 passes/s"
     assert not node.finished.done()
