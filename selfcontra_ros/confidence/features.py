@@ -626,7 +626,11 @@ class DistanceToDiscontinuity(Measure):
         if not edge.any():
             return np.full(ctx.count, float(np.hypot(*ctx.shape)), dtype=np.float32)
         distance = cv2.distanceTransform((~edge).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-        return ctx.at_valid(distance)
+        # The exact transform's squared distances are integers, but OpenCV's single-threaded path returns some
+        # square roots one float32 ulp low, depending on the buffer's alignment. Rounding the square and taking
+        # the root again gives the same bits on every machine and thread count.
+        squared = np.rint(distance.astype(np.float64) ** 2)
+        return ctx.at_valid(np.sqrt(squared).astype(np.float32))
 
 
 @register
