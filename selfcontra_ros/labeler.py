@@ -26,7 +26,7 @@ from selfcontra_ros.stages._common import TOLERANCES
 from selfcontra_ros.stages.outliers import READINGS, augmented_depth, outlier_negatives, trivial_outliers
 from selfcontra_ros.stages.support import MAX_BINS, update_support
 from selfcontra_ros.stages.voting import NEGATIVE_VOTERS, consistency_voting
-from selfcontra_ros.window import View, ViewWindow, make_view, support_count
+from selfcontra_ros.window import TEXTURE_MEASURES, View, ViewWindow, ambiguous_pixels, make_view, support_count
 
 __all__ = ["LabelResult", "Labeler", "LabelerParams"]
 
@@ -169,6 +169,26 @@ class LabelerParams:
             96.99 / 35.16 / 98.49, the 10 flushed ones 91.94 / 28.96 / 94.86:
             on forward motion the newer views are the closer, more accurate
             ones, and only more accurate references vote in Stage 2.
+        ambiguity_min_texture: grey levels; a pixel whose left-image
+            standard deviation in an ``ambiguity_texture_window`` square is
+            below this is *ambiguous* (:func:`~selfcontra_ros.window.ambiguous_pixels`):
+            as a reference it casts no Stage-2 vote, and it is never labelled
+            positive itself (it may still be negative). A textureless patch
+            matches equally well at many disparities, SGM fills it from its
+            surroundings and nearby views repeat the guess, so their agreement
+            proves nothing, and their disagreement with a correct neighbour
+            view proves nothing either. 0 = the paper. Needs the left image
+            (``Labeler.add_view(image=...)``; the session, the node and the
+            bag labeler pass it; without it, e.g. external disparities with
+            no images, the cue is off).
+        ambiguity_texture_window: odd window size of that standard deviation, pixels.
+        ambiguity_texture_measure: ``std`` (grey-level standard deviation) or
+            ``gradient_x`` (RMS of the horizontal derivative, the only
+            direction that constrains a horizontal disparity).
+        ambiguity_edge_px: pixels; a pixel whose disparity varies by more than
+            this within its 3x3 neighbourhood (a depth edge, where a lookup
+            hits foreground or background by a fraction of a pixel) is
+            ambiguous too. 0 = the paper.
     """
 
     window_size: int = 20
@@ -193,6 +213,10 @@ class LabelerParams:
     keyframe_min_translation: float = 0.05
     keyframe_min_rotation_deg: float = 1.0
     flush_incomplete: bool = False
+    ambiguity_min_texture: float = 0.0
+    ambiguity_texture_window: int = 7
+    ambiguity_edge_px: float = 0.0
+    ambiguity_texture_measure: str = "std"
 
     def __post_init__(self) -> None:
         for name in (
@@ -203,6 +227,7 @@ class LabelerParams:
             "stage2_free_space_neighbourhood",
             "stage2_edge_occluded_side_px",
             "stage2_edge_other_px",
+            "ambiguity_texture_window",
         ):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
@@ -217,6 +242,8 @@ class LabelerParams:
             "stage2_edge_jump_px",
             "keyframe_min_translation",
             "keyframe_min_rotation_deg",
+            "ambiguity_min_texture",
+            "ambiguity_edge_px",
         ):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
@@ -249,6 +276,8 @@ class LabelerParams:
             "stage2_edge_jump_px",
             "stage2_edge_occluded_side_px",
             "stage2_edge_other_px",
+            "ambiguity_min_texture",
+            "ambiguity_edge_px",
         ):
             if getattr(self, name) < 0:
                 raise ValueError(f"LabelerParams.{name} must be >= 0, got {getattr(self, name)}")
@@ -261,9 +290,14 @@ class LabelerParams:
             raise ValueError(
                 f"LabelerParams.stage2_min_angle_deg must be in [0, 180) degrees, got {self.stage2_min_angle_deg}"
             )
+        if self.ambiguity_texture_window < 1 or self.ambiguity_texture_window % 2 == 0:
+            raise ValueError(
+                f"LabelerParams.ambiguity_texture_window must be odd and >= 1, got {self.ambiguity_texture_window}"
+            )
         if self.min_positive_votes < 1:
             raise ValueError(f"LabelerParams.min_positive_votes must be >= 1, got {self.min_positive_votes}")
         for name, choices in (
+            ("ambiguity_texture_measure", TEXTURE_MEASURES),
             ("stage1_tolerance", TOLERANCES),
             ("stage2_tolerance", TOLERANCES),
             ("stage2_negative_voters", NEGATIVE_VOTERS),
@@ -328,7 +362,13 @@ class Labeler:
         self._kept = 0
 
     def add_view(
-        self, disparity: NDArray[np.floating], pose: NDArray[np.floating], *, stamp: float, key: Hashable = None
+        self,
+        disparity: NDArray[np.floating],
+        pose: NDArray[np.floating],
+        *,
+        stamp: float,
+        key: Hashable = None,
+        image: NDArray[np.uint8] | None = None,
     ) -> list[LabelResult]:
         """Add one view; returns the labels of the views that became ready (``label_delay`` views back).
 
@@ -337,6 +377,8 @@ class Labeler:
             pose: 4x4 ``T_world_left`` (metres).
             stamp: the view's stamp, seconds; the label image carries it.
             key: returned with the labels; defaults to the running number of ``add_view`` calls.
+            image: the view's left image (HxW grey or HxWx3 RGB), for ``ambiguity_min_texture``; without
+                it that cue is off for this view.
 
         Raises:
             SelfContraError: naming the disparity shape or the pose when malformed.
@@ -352,6 +394,18 @@ class Labeler:
             self.skipped_views += 1
             return []
         p = self.params
+        reliable = None
+        if p.ambiguity_min_texture > 0 or p.ambiguity_edge_px > 0:
+            if image is not None and np.asarray(image).shape[:2] != shape:
+                raise SelfContraError(f"image has shape {np.asarray(image).shape}; expected {shape} (as the disparity)")
+            reliable = ~ambiguous_pixels(
+                disp,
+                image,
+                min_texture=p.ambiguity_min_texture,
+                texture_window=p.ambiguity_texture_window,
+                edge_px=p.ambiguity_edge_px,
+                texture_measure=p.ambiguity_texture_measure,
+            )
         view = make_view(
             self.camera,
             disp,
@@ -360,6 +414,7 @@ class Labeler:
             key=call if key is None else key,
             stamp=stamp,
             sigma_px=p.sigma_px,
+            reliable=reliable,
         )
         self._kept += 1
         update_support(

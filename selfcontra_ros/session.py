@@ -198,6 +198,7 @@ class LabelingSession:
         stamp: float,
         key: Hashable = None,
         frame: ConfidenceFrame | None = None,
+        image: NDArray[np.uint8] | None = None,
     ) -> tuple[list[LabelResult], bool]:
         """Add one view to the labeler; returns ``(ready label results, skipped)``.
 
@@ -210,7 +211,9 @@ class LabelingSession:
         skipped_before = self.labeler.skipped_views
         if self.confidence is not None and frame is not None:
             self._frames[(key, stamp)] = frame
-        results = self.labeler.add_view(disparity, pose, stamp=stamp, key=key)
+        if image is None and frame is not None:
+            image = frame.left
+        results = self.labeler.add_view(disparity, pose, stamp=stamp, key=key, image=image)
         skipped = self.labeler.skipped_views > skipped_before
         if skipped:
             self._frames.pop((key, stamp), None)
@@ -246,7 +249,7 @@ class LabelingSession:
         """
         if self.confidence is None:
             disparity, depth = self.match(left, right, external_disparity=external_disparity)
-            labelled, skipped = self.label(disparity, pose, stamp=stamp, key=key)
+            labelled, skipped = self.label(disparity, pose, stamp=stamp, key=key, image=left)
             return FrameOutput(disparity=disparity, depth=depth, labelled=labelled, skipped=skipped)
         matched = self.match_frame(left, right, external_disparity=external_disparity)
         confidence, filtered, source = self.confidence_of(matched.frame)

@@ -14,6 +14,7 @@ from collections import deque
 from collections.abc import Hashable, Iterator
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -39,6 +40,8 @@ class View:
         points: 3D points in the view's left frame, metres (float32, NaN invalid).
         u: largest covariance eigenvalue per pixel, m^2 (float32, NaN invalid).
         support_bits: Stage-1 angular bins activated per pixel (bit ``k`` = bin ``k``).
+        reliable: pixels whose match is not ambiguous (see :func:`ambiguous_pixels`): only these vote
+            as references in Stage 2 and may be labelled positive. All true when no cue is enabled.
         labelled: whether labels for this view have been produced.
     """
 
@@ -53,6 +56,7 @@ class View:
     points: NDArray[np.float32]
     u: NDArray[np.float32]
     support_bits: NDArray[np.uint64]
+    reliable: NDArray[np.bool_]
     labelled: bool = field(default=False)
 
     def from_view(self, other: View) -> NDArray[np.float64]:
@@ -69,8 +73,12 @@ def make_view(
     key: Hashable,
     stamp: float,
     sigma_px: float,
+    reliable: NDArray[np.bool_] | None = None,
 ) -> View:
-    """Build a :class:`View` from a disparity map (HxW, pixels) and its pose (4x4 ``T_world_left``)."""
+    """Build a :class:`View` from a disparity map (HxW, pixels) and its pose (4x4 ``T_world_left``).
+
+    ``reliable`` (HxW) marks the pixels whose match is trusted; None trusts every valid pixel.
+    """
     disp = np.asarray(disparity, dtype=np.float32)
     valid = (np.isfinite(disp) & (disp > 0)).ravel()
     points = camera.backproject(disp).reshape(-1, 3)
@@ -88,7 +96,60 @@ def make_view(
         points=points.astype(np.float32),
         u=u.astype(np.float32),
         support_bits=np.zeros(valid.size, dtype=np.uint64),
+        reliable=valid.copy() if reliable is None else (np.asarray(reliable, dtype=bool).ravel() & valid),
     )
+
+
+#: Texture measures of :func:`ambiguous_pixels`.
+TEXTURE_MEASURES = ("std", "gradient_x")
+
+
+def ambiguous_pixels(
+    disparity: NDArray[np.floating],
+    image: NDArray[np.uint8] | None,
+    *,
+    min_texture: float,
+    texture_window: int,
+    edge_px: float,
+    texture_measure: str = "std",
+) -> NDArray[np.bool_]:
+    """Pixels whose match the query algorithm may have got wrong from every viewpoint alike (HxW bool).
+
+    Two cues, each off at 0:
+
+    * *texture*: the grey-level standard deviation of ``image`` in a
+      ``texture_window`` x ``texture_window`` window (``texture_measure``
+      ``std``), or the RMS of its horizontal central difference there
+      (``gradient_x``), is below ``min_texture`` (grey levels). A textureless patch matches equally well at many
+      disparities; SGM then fills it from its surroundings, and nearby views
+      make the same guess. Needs the left image (None: the cue is off).
+    * *depth edge*: the disparity varies by more than ``edge_px`` pixels within
+      the 3x3 neighbourhood. A lookup landing there takes the foreground or the
+      background depending on a fraction of a pixel, so it neither confirms
+      nor contradicts reliably.
+    """
+    d = np.asarray(disparity, dtype=np.float32)
+    ambiguous = np.zeros(d.shape, dtype=bool)
+    if image is not None and min_texture > 0:
+        grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+        g = grey.astype(np.float64)  # float64: the variance is a small difference of large sums
+        size = (int(texture_window), int(texture_window))
+        if texture_measure == "gradient_x":
+            gx = np.zeros_like(g)
+            gx[:, 1:-1] = 0.5 * (g[:, 2:] - g[:, :-2])
+            ambiguous |= np.sqrt(cv2.blur(gx * gx, size, borderType=cv2.BORDER_REFLECT)) < min_texture
+        else:
+            mean = cv2.blur(g, size, borderType=cv2.BORDER_REFLECT)
+            mean_sq = cv2.blur(g * g, size, borderType=cv2.BORDER_REFLECT)
+            ambiguous |= np.sqrt(np.maximum(mean_sq - mean * mean, 0.0)) < min_texture
+    if edge_px > 0:
+        valid = np.isfinite(d) & (d > 0)
+        kernel = np.ones((3, 3), np.uint8)
+        high = cv2.dilate(np.where(valid, d, -np.inf).astype(np.float32), kernel, borderType=cv2.BORDER_REPLICATE)
+        low = cv2.erode(np.where(valid, d, np.inf).astype(np.float32), kernel, borderType=cv2.BORDER_REPLICATE)
+        with np.errstate(invalid="ignore"):
+            ambiguous |= valid & (high - low > edge_px)
+    return ambiguous
 
 
 def support_count(bits: NDArray[np.uint64]) -> NDArray[np.uint8]:

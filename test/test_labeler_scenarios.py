@@ -172,3 +172,57 @@ def test_views_closer_than_alpha_min_give_no_support() -> None:
 def test_invalid_stage2_options_are_rejected_by_name(field: str, value: object) -> None:
     with pytest.raises(ValueError, match=field):
         LabelerParams.from_dict({field: value})
+
+
+def _textured_image(flat: tuple[slice, slice] | None = None) -> np.ndarray:
+    """A strongly textured grey image, optionally with one perfectly flat rectangle."""
+    rng = np.random.default_rng(0)
+    image = rng.integers(0, 256, (CAMERA.height, CAMERA.width)).astype(np.uint8)
+    if flat is not None:
+        image[flat] = 128
+    return image
+
+
+def _run_with_images(
+    disparities: list[np.ndarray], poses: list[np.ndarray], images: list[np.ndarray], params: LabelerParams
+) -> LabelResult:
+    labeler = Labeler(CAMERA, params)
+    results: list[LabelResult] = []
+    for i, (disp, pose, image) in enumerate(zip(disparities, poses, images, strict=True)):
+        results += labeler.add_view(disp, pose, stamp=100.0 + i, key=i, image=image)
+    results += labeler.flush()
+    return {r.key: r for r in results}[MIDDLE]
+
+
+def test_ambiguous_query_pixels_abstain_from_positives(arc: tuple[list[np.ndarray], list[np.ndarray]]) -> None:
+    disparities, poses = arc
+    flat = (slice(40, 80), slice(50, 110))
+    images = [_textured_image(flat if i == MIDDLE else None) for i in range(len(poses))]
+    params = LabelerParams(window_size=7, label_delay=3, ambiguity_min_texture=2.0)
+    result = _run_with_images(disparities, poses, images, params)
+    plain = _middle_result(disparities, poses, PARAMS)
+    # The flat rectangle (shrunk by the texture window's half width) is never positive, though correct and supported.
+    core = (slice(44, 76), slice(54, 106))
+    assert np.mean(plain.labels[core] == POSITIVE) > 0.9
+    assert not np.any(result.labels[core] == POSITIVE)
+    # Elsewhere the labels are the paper's: every view is textured there and votes as before.
+    outside = np.ones(result.labels.shape, dtype=bool)
+    outside[36:84, 46:114] = False
+    assert np.array_equal(result.labels[outside], plain.labels[outside])
+
+
+def test_ambiguous_references_cast_no_vote(arc: tuple[list[np.ndarray], list[np.ndarray]]) -> None:
+    disparities, poses = arc
+    bad = [d.copy() for d in disparities]
+    bad[MIDDLE][40:70, 60:100] *= WALL_Z / 6.5  # as in the patch-in-front test: negative by every reference
+    flat = _textured_image((slice(0, CAMERA.height), slice(0, CAMERA.width)))
+    images = [_textured_image() if i == MIDDLE else flat for i in range(len(poses))]
+    params = LabelerParams(window_size=7, label_delay=3, ambiguity_min_texture=2.0)
+    result = _run_with_images(bad, poses, images, params)
+    # Every reference is textureless: no Stage-2 vote at all, so no Stage-2 label either way.
+    assert not np.any(result.vote_sum != 0)
+    assert not np.any(result.stage2_labels != UNKNOWN)
+    # Without the cue the references vote: the wall around the patch is confirmed by them.
+    plain = _run_with_images(bad, poses, images, PARAMS)
+    assert np.mean(plain.stage2_labels[plain.vote_sum > 0] == POSITIVE) > 0.99
+    assert np.mean(plain.vote_sum != 0) > 0.3

@@ -139,3 +139,31 @@ def test_params_validation_and_from_dict() -> None:
     ):
         with pytest.raises(ValueError, match="LabelerParams"):
             LabelerParams.from_dict(bad)
+
+
+def test_ambiguous_pixels_match_a_brute_force_reference() -> None:
+    from selfcontra_ros.window import ambiguous_pixels
+
+    rng = np.random.default_rng(3)
+    image = rng.integers(100, 110, (24, 32)).astype(np.uint8)  # std about 2.9
+    image[:, 16:] = 120 + (image[:, 16:] - 100) // 4  # std about 0.7: ambiguous
+    disparity = np.full((24, 32), 10.0, np.float32)
+    disparity[12:, 8:20] = 16.0  # a 6 px jump
+    disparity[0, 0] = np.nan
+    got = ambiguous_pixels(disparity, image, min_texture=1.5, texture_window=5, edge_px=4.0)
+    padded = np.pad(image.astype(np.float64), 2, mode="symmetric")  # OpenCV's BORDER_REFLECT repeats the edge
+    expected = np.zeros((24, 32), bool)
+    for r in range(24):
+        for c in range(32):
+            texture = padded[r : r + 5, c : c + 5].std() < 1.5
+            d = disparity[max(r - 1, 0) : r + 2, max(c - 1, 0) : c + 2]
+            d = d[np.isfinite(d)]
+            edge = np.isfinite(disparity[r, c]) and d.max() - d.min() > 4.0
+            expected[r, c] = texture or edge
+    assert np.array_equal(got, expected)
+    # Each cue is off at 0, and the texture cue without an image.
+    assert not ambiguous_pixels(disparity, image, min_texture=0.0, texture_window=5, edge_px=0.0).any()
+    assert np.array_equal(
+        ambiguous_pixels(disparity, None, min_texture=1.5, texture_window=5, edge_px=4.0),
+        ambiguous_pixels(disparity, image, min_texture=0.0, texture_window=5, edge_px=4.0),
+    )

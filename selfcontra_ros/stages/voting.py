@@ -43,6 +43,7 @@ the band stay open to negative votes and to Stage 3.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import cv2
@@ -256,11 +257,16 @@ def consistency_voting(
     # One reference after the other, as the paper sums votes: the sums do not depend on how pixels are split
     # between threads.
     for ref in refs:
+        # Only the reference's reliable measurements vote (window.ambiguous_pixels): an unsupported
+        # measurement never votes, so masking the support is enough.
+        gated = ref
+        if not ref.reliable[ref.valid].all():
+            gated = dataclasses.replace(ref, support_bits=np.where(ref.reliable, ref.support_bits, np.uint64(0)))
         _reference_votes(
             full_sum,
             full_voted,
             query,
-            ref,
+            gated,
             camera,
             sigma_max=sigma_max,
             sigma_px=sigma_px,
@@ -273,7 +279,7 @@ def consistency_voting(
             free_space_neighbourhood=free_space_neighbourhood,
         )
     labels = np.full(n, UNKNOWN, dtype=np.uint8)
-    positive = full_voted & (full_sum > 0)
+    positive = full_voted & (full_sum > 0) & query.reliable  # an ambiguous match abstains from positives
     if min_query_support > 0:
         positive &= support_count(query.support_bits) >= min_query_support
     if edge_jump_px > 0:
