@@ -129,7 +129,7 @@ def run(
             if full and steady == 0:
                 stages.clear()  # only steady-state calls count
             start = time.perf_counter()
-            ready = len(labeler.add_view(disparity, pose, stamp=stamp, key=index))
+            ready = len(labeler.add_view(disparity, pose, stamp=stamp, key=index, image=left))
             elapsed = time.perf_counter() - start
             labelled += ready
             if full:

@@ -71,6 +71,8 @@ def run(disparities: list[np.ndarray], poses: list[np.ndarray], params: LabelerP
 ANGLES = (-36.0, -24.0, -12.0, 0.0, 12.0, 24.0, 36.0)
 MIDDLE = 3
 PARAMS = LabelerParams(window_size=7, label_delay=3)
+#: Without the ambiguity cues (the paper's votes), for the tests of those cues.
+PAPER = LabelerParams(window_size=7, label_delay=3, ambiguity_min_texture=0.0, ambiguity_edge_px=0.0)
 
 
 def _middle_result(disparities: list[np.ndarray], poses: list[np.ndarray], params: LabelerParams) -> LabelResult:
@@ -198,9 +200,9 @@ def test_ambiguous_query_pixels_abstain_from_positives(arc: tuple[list[np.ndarra
     disparities, poses = arc
     flat = (slice(40, 80), slice(50, 110))
     images = [_textured_image(flat if i == MIDDLE else None) for i in range(len(poses))]
-    params = LabelerParams(window_size=7, label_delay=3, ambiguity_min_texture=2.0)
+    params = LabelerParams(window_size=7, label_delay=3, ambiguity_abstain=True)
     result = _run_with_images(disparities, poses, images, params)
-    plain = _middle_result(disparities, poses, PARAMS)
+    plain = _middle_result(disparities, poses, PAPER)
     # The flat rectangle (shrunk by the texture window's half width) is never positive, though correct and supported.
     core = (slice(44, 76), slice(54, 106))
     assert np.mean(plain.labels[core] == POSITIVE) > 0.9
@@ -217,12 +219,12 @@ def test_ambiguous_references_cast_no_vote(arc: tuple[list[np.ndarray], list[np.
     bad[MIDDLE][40:70, 60:100] *= WALL_Z / 6.5  # as in the patch-in-front test: negative by every reference
     flat = _textured_image((slice(0, CAMERA.height), slice(0, CAMERA.width)))
     images = [_textured_image() if i == MIDDLE else flat for i in range(len(poses))]
-    params = LabelerParams(window_size=7, label_delay=3, ambiguity_min_texture=2.0)
+    params = LabelerParams(window_size=7, label_delay=3, ambiguity_edge_px=0.0)
     result = _run_with_images(bad, poses, images, params)
     # Every reference is textureless: no Stage-2 vote at all, so no Stage-2 label either way.
     assert not np.any(result.vote_sum != 0)
     assert not np.any(result.stage2_labels != UNKNOWN)
     # Without the cue the references vote: the wall around the patch is confirmed by them.
-    plain = _run_with_images(bad, poses, images, PARAMS)
+    plain = _run_with_images(bad, poses, images, PAPER)
     assert np.mean(plain.stage2_labels[plain.vote_sum > 0] == POSITIVE) > 0.99
     assert np.mean(plain.vote_sum != 0) > 0.3

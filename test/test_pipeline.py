@@ -92,7 +92,7 @@ def test_labels_equal_a_direct_labeler_run(street: Path, small_window: Path, lab
     for frame in sequence:
         assert frame.pose is not None
         disparity = matcher.compute(frame.left, frame.right, with_right=False).left
-        results += labeler.add_view(disparity, frame.pose, stamp=frame.stamp, key=frame.index)
+        results += labeler.add_view(disparity, frame.pose, stamp=frame.stamp, key=frame.index, image=frame.left)
     results += labeler.flush()
     assert results
     for result in results:

@@ -220,6 +220,7 @@ def consistency_voting(
     edge_other_px: int = 3,
     positive_sigma: float | None = None,
     negative_sigma: float | None = None,
+    abstain_ambiguous: bool = True,
 ) -> VotingResult:
     """Stage 2 for one query view against the reference views ``refs``.
 
@@ -249,6 +250,8 @@ def consistency_voting(
             (the tolerance above); ``None`` = ``sigma_max`` (the paper).
         negative_sigma: a lookup votes for an occlusion only beyond this many standard deviations; ``None`` =
             ``sigma_max`` (the paper). Between the two: no vote. Free-space violations keep ``sigma_max``.
+        abstain_ambiguous: query pixels the view marks unreliable (``View.reliable``) are never positive;
+            false: only the references' unreliable pixels are left out (they never vote).
     """
     n = query.valid.size
     mode = tolerance_code(tolerance)
@@ -279,7 +282,9 @@ def consistency_voting(
             free_space_neighbourhood=free_space_neighbourhood,
         )
     labels = np.full(n, UNKNOWN, dtype=np.uint8)
-    positive = full_voted & (full_sum > 0) & query.reliable  # an ambiguous match abstains from positives
+    positive = full_voted & (full_sum > 0)
+    if abstain_ambiguous:
+        positive &= query.reliable  # an ambiguous match abstains from positives
     if min_query_support > 0:
         positive &= support_count(query.support_bits) >= min_query_support
     if edge_jump_px > 0:

@@ -79,15 +79,27 @@ def params_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return path
 
 
-def reference(frames: Frames, params_file: Path) -> tuple[list[NDArray[np.float32]], dict[Any, Any]]:
-    """Depth of every frame and label results by frame index, from a session run directly on the frames."""
+def reference(
+    frames: Frames, params_file: Path, *, images: bool = True
+) -> tuple[list[NDArray[np.float32]], dict[Any, Any]]:
+    """Depth of every frame and label results by frame index, from a session run directly on the frames.
+
+    ``images=False``: the labeler sees disparities only, as the node in external mode (no texture cue).
+    """
     matcher, labeler = load_params(params_file)
     session = LabelingSession(frames.camera, matcher, labeler)
     depths, results = [], {}
     for k in range(len(frames.left)):
-        out = session.process(frames.left[k], frames.right[k], frames.poses[k], stamp=frames.stamp_ns(k) / 1e9, key=k)
-        depths.append(out.depth)
-        results.update({r.key: r for r in out.labelled})
+        stamp = frames.stamp_ns(k) / 1e9
+        if images:
+            out = session.process(frames.left[k], frames.right[k], frames.poses[k], stamp=stamp, key=k)
+            depths.append(out.depth)
+            labelled = out.labelled
+        else:
+            disparity, depth = session.match(frames.left[k], frames.right[k])
+            depths.append(depth)
+            labelled, _ = session.label(disparity, frames.poses[k], stamp=stamp, key=k)
+        results.update({r.key: r for r in labelled})
     results.update({r.key: r for r in session.flush()})
     return depths, results
 
@@ -221,7 +233,7 @@ def check_outputs(
     """Depth of every frame and labels of the labelled views equal the reference session's, with the right headers."""
     from selfcontra_ros.ros.conversions import disparity_from_message, image_to_numpy
 
-    depths, results = reference(frames, params_file)
+    depths, results = reference(frames, params_file, images=not external)
     matcher, _ = load_params(params_file)
     max_disparity = matcher.min_disparity + matcher.num_disparities - 1
     n_frames = len(frames.left)
