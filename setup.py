@@ -42,6 +42,8 @@ setup(
         "scikit-learn>=1.3",
         "rosbags>=0.10",
         "mcap>=1.1",
+        "zstandard>=0.22",  # the bag reader decompresses MCAP chunks itself
+        "lz4>=4.0",
         "mcap-ros2-support>=0.5",
         "PyYAML>=6.0",
         "tqdm>=4.60",
