@@ -65,6 +65,7 @@ __all__ = [
     "evaluate_view",
     "json_safe",
     "label_sequence",
+    "write_json",
 ]
 
 LABELS_DIR = "labels"
@@ -96,6 +97,11 @@ def json_safe(value: Any) -> Any:
     if isinstance(value, float) and not math.isfinite(value):
         return None
     return value
+
+
+def write_json(path: Path, report: dict[str, Any]) -> None:
+    """Write a metrics/report dictionary as indented JSON (:func:`json_safe`: undefined figures as ``null``)."""
+    path.write_text(json.dumps(json_safe(report), indent=2, allow_nan=False) + "\n", encoding="utf-8")
 
 
 def _write_png(path: Path, image: NDArray[np.uint8]) -> None:
@@ -249,7 +255,5 @@ def _write_report(
         "has_ground_truth": has_gt,
         "runtime_s": time.perf_counter() - started,
     }
-    (out_dir / METRICS_FILE).write_text(
-        json.dumps(json_safe(report), indent=2, allow_nan=False) + "\n", encoding="utf-8"
-    )
+    write_json(out_dir / METRICS_FILE, report)
     return report

@@ -87,7 +87,6 @@ parameter file and writes only ``out_bag``.
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import math
 import time
@@ -115,7 +114,7 @@ from selfcontra_ros.geometry import StereoCamera
 from selfcontra_ros.labeler import LabelerParams, LabelResult
 from selfcontra_ros.labels import colorize_labels
 from selfcontra_ros.matching.base import MatcherError, MatcherParams
-from selfcontra_ros.pipeline import METRICS_FILE, PendingView, evaluate_view, json_safe
+from selfcontra_ros.pipeline import METRICS_FILE, PendingView, evaluate_view, write_json
 from selfcontra_ros.ros.conversions import (
     disparity_from_message,
     image_to_numpy,
@@ -642,9 +641,7 @@ def label_bag(
             report["confidence"] = confidence.stats() if confidence is not None else None
             report["recovered"] = bag.recovery  # what a damaged input still held (Bag.recovery), None if intact
             if out_bag.is_dir():
-                metrics_path(out_bag).write_text(
-                    json.dumps(json_safe(report), indent=2, allow_nan=False) + "\n", encoding="utf-8"
-                )
+                write_json(metrics_path(out_bag), report)
     return report
 
 

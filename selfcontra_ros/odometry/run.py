@@ -25,7 +25,6 @@ arguments' files and write only the output paths given.
 from __future__ import annotations
 
 import csv
-import json
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator
@@ -45,7 +44,7 @@ from selfcontra_ros.datasets.kitti import OdometrySequence, StereoScene, open_se
 from selfcontra_ros.geometry import StereoCamera
 from selfcontra_ros.odometry.metrics import SHORT_LENGTHS, OdometryMetrics, evaluate_odometry
 from selfcontra_ros.odometry.stereo_vo import FrameQuality, OdometryError, StereoOdometry, VOParams
-from selfcontra_ros.pipeline import json_safe
+from selfcontra_ros.pipeline import write_json
 
 __all__ = [
     "OnlineOdometry",
@@ -380,7 +379,7 @@ def odometry_command(
         "metrics": None if metrics is None else asdict(metrics),
         "quality": [asdict(q) for q in qualities],
     }
-    json_path.write_text(json.dumps(json_safe(report), indent=2, allow_nan=False) + "\n", encoding="utf-8")
+    write_json(json_path, report)
     if echo is not None:
         echo(f"{len(qualities)} frames, {report['reliable_frames']} reliable, {report['ms_per_frame']:.0f} ms/frame")
         for item in unreliable:
