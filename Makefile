@@ -16,11 +16,19 @@ export ROS_DOMAIN_ID ?= 73
 
 all: test
 
+# opencv-contrib-python-headless and plain opencv-python(-headless) write the same
+# cv2 package, so a venv made before the switch to contrib loses the plain one,
+# and the contrib one with it (uninstalling the plain one deleted its cv2 files);
+# the install below puts contrib back whole. A fresh venv never had either.
+drop_plain_opencv = @if $(1)/python -m pip show --quiet opencv-python-headless opencv-python >/dev/null 2>&1; then \
+	$(1)/python -m pip uninstall --quiet --yes opencv-python-headless opencv-python opencv-contrib-python-headless; fi
+
 # --no-compile: Python writes each .pyc on first import; compiling all of SciPy & co.
 # up front is a third of the install time.
 $(STAMP): setup.py setup.cfg constraints.txt
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(call drop_plain_opencv,$(BIN))
 	$(BIN)/python -m pip install --quiet --no-compile -c constraints.txt -e ".[ros,dev]"
 	$(BIN)/python -m pip check
 	@touch $(STAMP)
@@ -38,6 +46,7 @@ JAZZY_STAMP := $(JAZZY_VENV)/.installed
 $(JAZZY_STAMP): setup.py setup.cfg constraints.txt constraints-jazzy.txt
 	@test -x $(JAZZY_BIN)/python || $(PYTHON) -m venv $(JAZZY_VENV)
 	$(JAZZY_BIN)/python -m pip install --quiet --upgrade pip
+	$(call drop_plain_opencv,$(JAZZY_BIN))
 	sed '/^ros-/d' constraints.txt > $(JAZZY_VENV)/constraints-without-ros.txt
 	$(JAZZY_BIN)/python -m pip install --quiet --no-compile -c $(JAZZY_VENV)/constraints-without-ros.txt \
 		-c constraints-jazzy.txt -e ".[ros-jazzy,dev]"

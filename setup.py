@@ -38,7 +38,9 @@ setup(
         "numpy>=1.24",
         "numba>=0.59",
         "threadpoolctl>=3.1",
-        "opencv-python-headless>=4.8",
+        # OpenCV with its contrib modules (ximgproc: the WLS confidence baseline). It replaces
+        # opencv-python-headless: both write the same cv2 package, and together they break it.
+        "opencv-contrib-python-headless>=4.8",
         "scikit-learn>=1.3",
         "rosbags>=0.10",
         "mcap>=1.1",
