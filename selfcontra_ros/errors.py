@@ -13,6 +13,7 @@ __all__ = [
     "DatasetError",
     "PoseError",
     "SelfContraError",
+    "TransformError",
 ]
 
 
@@ -34,3 +35,16 @@ class DatasetError(SelfContraError):
 
 class PoseError(SelfContraError):
     """A pose, rotation or quaternion is not finite or not rigid."""
+
+
+class TransformError(SelfContraError):
+    """A transform between two frames is unknown, or not known at the stamp asked for (TF lookups).
+
+    Attributes:
+        reason: short machine-readable cause, used as a drop counter's key
+            (e.g. ``tf_unknown_frame``, ``tf_not_connected``, ``tf_after_buffer``).
+    """
+
+    def __init__(self, message: str, reason: str = "tf_lookup_failed") -> None:
+        super().__init__(message)
+        self.reason = reason

@@ -9,6 +9,7 @@ bytes.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from typing import Any
 
 import numpy as np
@@ -16,6 +17,7 @@ from numpy.typing import NDArray
 from rosbags.typesys.store import Typestore
 
 from selfcontra_ros.bags import topics
+from selfcontra_ros.bags.compressed import compressed_image_fields
 from selfcontra_ros.geometry import StereoCamera, quaternion_from_rotation
 from selfcontra_ros.ros.conversions import camera_info_fields, disparity_image_fields, image_fields
 
@@ -39,6 +41,11 @@ class MessageBuilder:
         self._point = types["geometry_msgs/msg/Point"]
         self._quaternion = types["geometry_msgs/msg/Quaternion"]
         self._disparity = types[topics.DISPARITY_TYPE]
+        self._compressed = types[topics.COMPRESSED_IMAGE_TYPE]
+        self._tf_message = types[topics.TF_TYPE]
+        self._transform_stamped = types["geometry_msgs/msg/TransformStamped"]
+        self._transform = types["geometry_msgs/msg/Transform"]
+        self._vector3 = types["geometry_msgs/msg/Vector3"]
 
     def header(self, stamp_ns: int, frame_id: str) -> Any:
         """``std_msgs/Header`` with an integer-nanosecond stamp."""
@@ -65,6 +72,30 @@ class MessageBuilder:
             header=self.header(stamp_ns, frame_id),
             pose=self._pose(position=self._point(x=x, y=y, z=z), orientation=self._quaternion(x=qx, y=qy, z=qz, w=qw)),
         )
+
+    def compressed_image(
+        self, pixels: NDArray[np.uint8], encoding: str, stamp_ns: int, frame_id: str, *, image_format: str = "jpeg"
+    ) -> Any:
+        """``sensor_msgs/CompressedImage`` of an 8-bit image as image_transport's ``compressed`` plugin writes it.
+
+        See :func:`selfcontra_ros.bags.compressed.compressed_image_fields` (``format`` string, colour order).
+        """
+        fields = compressed_image_fields(pixels, encoding, image_format)
+        return self._compressed(header=self.header(stamp_ns, frame_id), **fields)
+
+    def tf_message(self, transforms: Iterable[tuple[str, str, int, NDArray[np.float64]]]) -> Any:
+        """``tf2_msgs/TFMessage`` of ``(parent, child, stamp_ns, T_parent_child)`` transforms (metres)."""
+        items = []
+        for parent, child, stamp_ns, matrix in transforms:
+            x, y, z = (float(v) for v in matrix[:3, 3])
+            qx, qy, qz, qw = (float(v) for v in quaternion_from_rotation(matrix[:3, :3]))
+            transform = self._transform(
+                translation=self._vector3(x=x, y=y, z=z), rotation=self._quaternion(x=qx, y=qy, z=qz, w=qw)
+            )
+            items.append(
+                self._transform_stamped(header=self.header(stamp_ns, parent), child_frame_id=child, transform=transform)
+            )
+        return self._tf_message(transforms=items)
 
     def disparity(
         self,

@@ -21,6 +21,8 @@ __all__ = [
     "CAMERA_INFO_TYPE",
     "CLOCK",
     "CLOCK_TYPE",
+    "COMPRESSED_IMAGE_TYPE",
+    "COMPRESSED_SUFFIX",
     "CONFIDENCE",
     "DEPTH",
     "DEPTH_FILTERED",
@@ -34,12 +36,17 @@ __all__ = [
     "LEFT_FRAME",
     "LEFT_IMAGE",
     "LEFT_INFO",
+    "LEFT_RAW",
     "POSE",
     "POSE_TYPE",
     "RIGHT_FRAME",
     "RIGHT_IMAGE",
     "RIGHT_INFO",
+    "RIGHT_RAW",
     "STEREO_NAMESPACE",
+    "TF",
+    "TF_STATIC",
+    "TF_TYPE",
     "WORLD_FRAME",
     "bag_topic",
 ]
@@ -51,6 +58,8 @@ CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
 POSE_TYPE = "geometry_msgs/msg/PoseStamped"
 DISPARITY_TYPE = "stereo_msgs/msg/DisparityImage"
 CLOCK_TYPE = "rosgraph_msgs/msg/Clock"
+COMPRESSED_IMAGE_TYPE = "sensor_msgs/msg/CompressedImage"
+TF_TYPE = "tf2_msgs/msg/TFMessage"
 
 # --------------------------------------------------------------------------- inputs of the labeler (relative names)
 
@@ -61,6 +70,14 @@ LEFT_IMAGE = "left/image_rect"
 RIGHT_IMAGE = "right/image_rect"
 LEFT_INFO = "left/camera_info"
 RIGHT_INFO = "right/camera_info"
+#: Unrectified images (with a distorted camera_info), read instead of ``image_rect`` when the package rectifies.
+LEFT_RAW = "left/image_raw"
+RIGHT_RAW = "right/image_raw"
+#: What image_transport appends to an image topic for its ``compressed`` transport (sensor_msgs/CompressedImage).
+COMPRESSED_SUFFIX = "/compressed"
+#: The TF topics (absolute, as tf2 names them; tf2_msgs/TFMessage).
+TF = "/tf"
+TF_STATIC = "/tf_static"
 #: geometry_msgs/PoseStamped, ``T_world_left`` in :data:`WORLD_FRAME`.
 POSE = "pose"
 #: stereo_msgs/DisparityImage of the left camera from ground truth (datasets that have it).
