@@ -283,7 +283,13 @@ def build_parser() -> argparse.ArgumentParser:
         description="Writes OUT/metrics.json (one model) or OUT/<model>/metrics.json (several), "
         "OUT/sparsification.png, OUT/table.md (paper Table 1 layout) and OUT/summary.json.",
     )
-    evaluate.add_argument("--model", action="append", required=True, help="model file or 'lrd' (repeatable)")
+    evaluate.add_argument(
+        "--model",
+        action="append",
+        required=True,
+        help="model file as 'train --out' wrote it, 'lrd' (left-right difference) or 'wls' (OpenCV's WLS filter "
+        "confidence on the same disparity maps) (repeatable)",
+    )
     evaluate.add_argument(
         "--data",
         required=True,
@@ -294,7 +300,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--algorithm",
         choices=("sgbm", "bm", "census_sgm"),
         default=None,
-        help="query algorithm when only 'lrd' is evaluated (models bring their own; default sgbm)",
+        help="query algorithm when only 'lrd' / 'wls' are evaluated (models bring their own; default sgbm)",
     )
     evaluate.set_defaults(handler=_cmd_evaluate_confidence)
     return parser

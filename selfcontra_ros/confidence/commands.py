@@ -26,8 +26,15 @@ skipped.
 ``{"frames": [...], "mean": {"ausc", "optimal", "ausc_ratio", "bad_rate"}}``
 (with one model; with several, one ``OUT/<name>/metrics.json`` each),
 ``sparsification.png`` (mean curves), ``table.md`` (paper Table 1 layout:
-rows = training source, columns = LRD, Ensemble, Park, GCP; cells = mean
+rows = training source, columns = LRD, WLS, Ensemble, Park, GCP; cells = mean
 AUSC / optimal) and ``summary.json``.
+
+Baselines without a model file (``--model`` values): ``lrd``, the left-right
+disparity difference (:func:`~selfcontra_ros.confidence.features.lrd_confidence`),
+and ``wls``, OpenCV's ``DisparityWLSFilter`` confidence map computed from the
+same left and right disparity maps (:mod:`selfcontra_ros.confidence.baselines`
+says exactly what the filter is fed). Both are scored on the same pixels as
+the forests.
 """
 
 from __future__ import annotations
@@ -47,8 +54,9 @@ from numpy.typing import NDArray
 from selfcontra_ros import interrupts
 from selfcontra_ros.confidence import constants
 from selfcontra_ros.confidence.bag_frames import BagFrame, BagLabels, is_bag, iter_bag_frames, read_bag_labels
+from selfcontra_ros.confidence.baselines import wls_confidence
 from selfcontra_ros.confidence.features import FeatureContext, compute_features, lrd_confidence
-from selfcontra_ros.confidence.forest import ForestModel, ModelError, load_model, save_model
+from selfcontra_ros.confidence.forest import ForestModel, ModelError, load_model, model_path, save_model
 from selfcontra_ros.confidence.inputs import query_feature_input
 from selfcontra_ros.confidence.training import Samples, TrainParams, frame_samples, merge_samples, train
 from selfcontra_ros.datasets.kitti import StereoFrame, open_sequence, open_stereo_dataset
@@ -62,6 +70,7 @@ from selfcontra_ros.matching.base import MatcherParams, make_matcher
 __all__ = [
     "GT",
     "LRD",
+    "WLS",
     "collect_samples",
     "confidence_table",
     "evaluate_command",
@@ -73,8 +82,12 @@ __all__ = [
 GT = "gt"
 #: ``--model`` value selecting the left-right disparity difference baseline.
 LRD = "lrd"
+#: ``--model`` value selecting OpenCV's WLS filter confidence baseline.
+WLS = "wls"
+#: Confidences without a model file: untrained, so repeated in every row of the table.
+BASELINES = (LRD, WLS)
 
-_COLUMNS = (("LRD", LRD), ("Ensemble", "ensemble"), ("Park", "park"), ("GCP", "gcp"))
+_COLUMNS = (("LRD", LRD), ("WLS", WLS), ("Ensemble", "ensemble"), ("Park", "park"), ("GCP", "gcp"))
 
 
 # ------------------------------------------------------------------------------------------- inputs
@@ -290,7 +303,7 @@ def train_command(
 @dataclass
 class _Entry:
     name: str
-    feature_set: str  # "lrd" for the baseline
+    feature_set: str  # "lrd" or "wls" for the baselines
     source: str
     model: ForestModel | None
 
@@ -298,17 +311,24 @@ class _Entry:
 def _load_entries(models: Sequence[str | Path]) -> list[_Entry]:
     entries: list[_Entry] = []
     for spec in models:
-        if str(spec) == LRD:
-            entries.append(_Entry(LRD, LRD, "none", None))
-            continue
-        model = load_model(spec)
-        feature_set = str(model.metadata.get("feature_set", ""))
-        if int(model.metadata.get("constants_version", -1)) != constants.VERSION:
-            raise ModelError(f"model {spec} was trained with feature version {model.metadata.get('constants_version')}")
-        name = Path(spec).stem
-        if any(e.name == name for e in entries):
-            name = f"{name}_{len(entries)}"
-        entries.append(_Entry(name, feature_set, str(model.metadata.get("label_source", "?")), model))
+        if str(spec) in BASELINES:
+            if any(e.model is None and e.feature_set == str(spec) for e in entries):
+                continue  # a baseline asked for twice is scored once
+            entry = _Entry(str(spec), str(spec), "none", None)
+        else:
+            path = Path(spec)
+            if not path.exists() and model_path(path).is_file():
+                path = model_path(path)  # the name given to 'train --out' without suffix: train wrote NAME.npz
+            model = load_model(path)
+            if int(model.metadata.get("constants_version", -1)) != constants.VERSION:
+                raise ModelError(
+                    f"model {spec} was trained with feature version {model.metadata.get('constants_version')}"
+                )
+            feature_set = str(model.metadata.get("feature_set", ""))
+            entry = _Entry(path.stem, feature_set, str(model.metadata.get("label_source", "?")), model)
+        if any(e.name == entry.name for e in entries):
+            entry.name = f"{entry.name}_{len(entries)}"
+        entries.append(entry)
     return entries
 
 
@@ -351,19 +371,20 @@ def confidence_table(results: Sequence[Mapping[str, Any]]) -> str:
             labels: ``gt``, ``self``, ...) and ``ausc_ratio``.
 
     Returns:
-        Rows = training source (LRD, untrained, repeated in every row);
-        columns = LRD, Ensemble, Park, GCP; ``-`` where nothing was evaluated.
+        Rows = training source (the baselines LRD and WLS, untrained, repeated
+        in every row); columns = LRD, WLS, Ensemble, Park, GCP; ``-`` where
+        nothing was evaluated.
     """
-    lrd = [r["ausc_ratio"] for r in results if r["feature_set"] == LRD]
-    sources = sorted({str(r["source"]) for r in results if r["feature_set"] != LRD}) or ["-"]
+    baselines = {key: [r["ausc_ratio"] for r in results if r["feature_set"] == key] for key in BASELINES}
+    sources = sorted({str(r["source"]) for r in results if r["feature_set"] not in BASELINES}) or ["-"]
     names = {GT: "ground truth", "self": "self-generated labels"}
     lines = ["| training source | " + " | ".join(c for c, _ in _COLUMNS) + " |", "|---" * (len(_COLUMNS) + 1) + "|"]
     for source in sources:
         cells = []
         for _, key in _COLUMNS:
             values = (
-                lrd
-                if key == LRD
+                baselines[key]
+                if key in baselines
                 else [r["ausc_ratio"] for r in results if r["feature_set"] == key and r["source"] == source]
             )
             cells.append(f"{values[0]:.3f}" if values and values[0] is not None and math.isfinite(values[0]) else "-")
@@ -379,10 +400,10 @@ def evaluate_command(
     matcher: MatcherParams | None = None,
     step: float = DEFAULT_STEP,
 ) -> dict[str, Any]:
-    """Evaluate confidence models (or ``"lrd"``) by sparsification on frames with ground truth.
+    """Evaluate confidence models (or the baselines ``"lrd"``, ``"wls"``) by sparsification on frames with ground truth.
 
     The query algorithm is the one the models were trained for (all must
-    agree); with only ``lrd``, ``matcher`` or the default. Matching and each
+    agree); with only baselines, ``matcher`` or the default. Matching and each
     feature set are computed once per frame for all models.
 
     Returns:
@@ -393,7 +414,7 @@ def evaluate_command(
     """
     specs = [models] if isinstance(models, (str, Path)) else list(models)
     if not specs:
-        raise SelfContraError("evaluate-confidence needs at least one --model (a model file or 'lrd')")
+        raise SelfContraError("evaluate-confidence needs at least one --model (a model file, 'lrd' or 'wls')")
     entries = _load_entries(specs)
     algorithms = {json.dumps(e.model.metadata.get("matcher"), sort_keys=True) for e in entries if e.model is not None}
     if len(algorithms) > 1:
@@ -420,7 +441,11 @@ def evaluate_command(
         cache: dict[str, NDArray[np.float32]] = {}
         for entry in entries:
             if entry.model is None:
-                confidence = lrd_confidence(ctx)
+                if entry.feature_set not in cache:
+                    cache[entry.feature_set] = (
+                        wls_confidence(ctx, params) if entry.feature_set == WLS else lrd_confidence(ctx)
+                    )
+                confidence = cache[entry.feature_set]
             else:
                 if entry.feature_set not in cache:
                     cache[entry.feature_set] = compute_features(entry.feature_set, ctx)[0]

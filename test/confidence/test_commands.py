@@ -61,6 +61,23 @@ def test_train_on_ground_truth_and_evaluate(sequence: Path, tmp_path: Path) -> N
     assert (tmp_path / "single" / "metrics.json").is_file() and "lrd" in single
 
 
+def test_wls_baseline_is_scored_on_the_same_pixels_as_lrd(sequence: Path, tmp_path: Path) -> None:
+    results = evaluate_command(["lrd", "wls", "wls"], sequence, tmp_path / "eval", matcher=MATCHER)
+    assert sorted(n for n in results if n != "table") == ["lrd", "wls"]  # a repeated baseline counts once
+    for lrd_frame, wls_frame in zip(results["lrd"]["frames"], results["wls"]["frames"], strict=True):
+        assert wls_frame["frame"] == lrd_frame["frame"]
+        assert wls_frame["pixels"] == lrd_frame["pixels"] and wls_frame["bad_rate"] == lrd_frame["bad_rate"]
+        assert wls_frame["ausc"] >= wls_frame["optimal"] - 1e-12
+    summary = json.loads((tmp_path / "eval" / "summary.json").read_text())
+    assert summary["models"]["wls"]["feature_set"] == "wls" and summary["models"]["wls"]["source"] == "none"
+    lines = (tmp_path / "eval" / "table.md").read_text().splitlines()
+    assert lines[0] == "| training source | LRD | WLS | Ensemble | Park | GCP |"
+    cells = [c.strip() for c in lines[2].strip("|").split("|")]
+    assert cells[0] == "-" and cells[3:] == ["-", "-", "-"]
+    assert float(cells[1]) == pytest.approx(results["lrd"]["mean"]["ausc_ratio"], abs=5e-4)
+    assert float(cells[2]) == pytest.approx(results["wls"]["mean"]["ausc_ratio"], abs=5e-4)
+
+
 def test_train_on_label_folder_uses_its_query_algorithm(sequence: Path, tmp_path: Path) -> None:
     labels_out = tmp_path / "labels_run"
     (labels_out / "labels").mkdir(parents=True)
@@ -81,14 +98,19 @@ def test_train_on_label_folder_uses_its_query_algorithm(sequence: Path, tmp_path
 def test_confidence_table_layout() -> None:
     rows = [
         {"feature_set": "lrd", "source": "none", "ausc_ratio": 2.8},
+        {"feature_set": "wls", "source": "none", "ausc_ratio": 2.6},
         {"feature_set": "ensemble", "source": "gt", "ausc_ratio": 1.97},
         {"feature_set": "ensemble", "source": "self", "ausc_ratio": 1.95},
         {"feature_set": "gcp", "source": "self", "ausc_ratio": 2.45},
     ]
     lines = confidence_table(rows).splitlines()
-    assert lines[0] == "| training source | LRD | Ensemble | Park | GCP |"
-    assert lines[2] == "| ground truth | 2.800 | 1.970 | - | - |"
-    assert lines[3] == "| self-generated labels | 2.800 | 1.950 | - | 2.450 |"
+    assert lines[0] == "| training source | LRD | WLS | Ensemble | Park | GCP |"
+    assert lines[1] == "|---|---|---|---|---|---|"
+    assert lines[2] == "| ground truth | 2.800 | 2.600 | 1.970 | - | - |"
+    assert lines[3] == "| self-generated labels | 2.800 | 2.600 | 1.950 | - | 2.450 |"
+    # Baselines alone: one row, the forest columns empty.
+    only = confidence_table(rows[:2]).splitlines()
+    assert only[2] == "| - | 2.800 | 2.600 | - | - | - |"
 
 
 def test_middlebury_reader(shared_data: Path) -> None:

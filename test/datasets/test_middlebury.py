@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
+from selfcontra_ros.cli import main
 from selfcontra_ros.confidence.commands import evaluate_command, iter_frames, train_command
 from selfcontra_ros.datasets.middlebury import (
     is_middlebury_scene,
@@ -145,3 +146,87 @@ def test_train_and_evaluate_read_the_benchmark_folders(benchmark: Path, tmp_path
         frames_scored = results[name]["frames"]
         assert len(frames_scored) == 2 and all(np.isfinite(f["ausc_ratio"]) for f in frames_scored)
     assert json.loads((tmp_path / "eval" / "summary.json").read_text())
+
+
+def test_cli_trains_and_evaluates_on_the_benchmark_folders(
+    benchmark: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    model = tmp_path / "park.model"
+    status = main(["train", "--features", "park", "--data", str(benchmark), "--labels", "gt", "--out", str(model)])
+    assert status == 0
+    assert model.is_file() and not (tmp_path / "park.model.npz").exists()  # the path given, no .npz added
+    printed = capsys.readouterr().out
+    assert "from 2 frames" in printed and printed.rstrip().endswith(str(model))
+    out = tmp_path / "eval"
+    args = ["evaluate-confidence", "--model", str(model), "--model", "lrd", "--model", "wls"]
+    assert main([*args, "--data", str(benchmark), "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    for name in ("park", "lrd", "wls"):
+        assert f"{name}: AUSC " in printed
+        record = json.loads((out / name / "metrics.json").read_text())
+        assert [f["frame"] for f in record["frames"]] == ["Adirondack", "delivery_area_1l"]
+        assert all(f["ausc_ratio"] >= 1.0 - 1e-9 for f in record["frames"])
+    table = (out / "table.md").read_text().splitlines()
+    assert table[0] == "| training source | LRD | WLS | Ensemble | Park | GCP |"
+    cells = [c.strip() for c in table[2].strip("|").split("|")]
+    assert cells[0] == "ground truth" and cells[3] == "-" and cells[5] == "-"
+    assert all(float(cells[i]) >= 1.0 for i in (1, 2, 4))
+    # One ETH3D scene folder on its own is a data set too.
+    alone = tmp_path / "eth3d"
+    assert (
+        main(
+            [
+                "evaluate-confidence",
+                "--model",
+                "wls",
+                "--data",
+                str(benchmark / "delivery_area_1l"),
+                "--out",
+                str(alone),
+            ]
+        )
+        == 0
+    )
+    record = json.loads((alone / "metrics.json").read_text())
+    assert [f["frame"] for f in record["frames"]] == ["delivery_area_1l"]
+
+
+def test_cli_model_names_as_train_wrote_them(
+    benchmark: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """'train --out NAME' writes NAME.npz; evaluate-confidence --model NAME finds it; a missing model is named."""
+    bare = tmp_path / "gcp"
+    assert (
+        main(
+            [
+                "train",
+                "--features",
+                "gcp",
+                "--data",
+                str(benchmark / "Adirondack"),
+                "--labels",
+                "gt",
+                "--out",
+                str(bare),
+            ]
+        )
+        == 0
+    )
+    assert (tmp_path / "gcp.npz").is_file() and not bare.exists()
+    assert (
+        main(["evaluate-confidence", "--model", str(bare), "--data", str(benchmark), "--out", str(tmp_path / "e")]) == 0
+    )
+    capsys.readouterr()
+    missing = tmp_path / "absent.model"
+    assert (
+        main(["evaluate-confidence", "--model", str(missing), "--data", str(benchmark), "--out", str(tmp_path / "f")])
+        == 2
+    )
+    assert f"model file {missing} does not exist" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["train", "--help"])
+    help_text = " ".join(capsys.readouterr().out.split())
+    assert "model file to write, as given (.npz is added only to a name without suffix)" in help_text
+    with pytest.raises(SystemExit):
+        main(["evaluate-confidence", "--help"])
+    assert "'wls' (OpenCV's WLS filter confidence" in " ".join(capsys.readouterr().out.split())
