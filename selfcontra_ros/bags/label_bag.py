@@ -87,6 +87,7 @@ parameter file and writes only ``out_bag``.
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import math
 import time
@@ -104,7 +105,17 @@ from selfcontra_ros import interrupts
 from selfcontra_ros.bags import topics
 from selfcontra_ros.bags.messages import MessageBuilder
 from selfcontra_ros.bags.reader import Bag, BagError, open_bag
-from selfcontra_ros.bags.sync import PoseBuffer, StampSynchronizer
+from selfcontra_ros.bags.stereo_input import (
+    CUSTOM_DATA_KEY,
+    IMAGE_ENCODINGS,
+    ImageError,
+    StereoImages,
+    StereoInput,
+    TFPoses,
+    TopicPoses,
+)
+from selfcontra_ros.bags.sync import StampSynchronizer
+from selfcontra_ros.bags.tf import TFBuffer
 from selfcontra_ros.bags.writer import BagWriter
 from selfcontra_ros.confidence.online import OnlineConfidence
 from selfcontra_ros.config import load_confidence_params, load_params, params_to_dict
@@ -117,9 +128,7 @@ from selfcontra_ros.matching.base import MatcherError, MatcherParams
 from selfcontra_ros.pipeline import METRICS_FILE, PendingView, evaluate_view, write_json
 from selfcontra_ros.ros.conversions import (
     disparity_from_message,
-    image_to_numpy,
     stamp_to_nanoseconds,
-    stereo_camera_from_camera_infos,
 )
 from selfcontra_ros.session import LabelingSession
 
@@ -128,8 +137,6 @@ __all__ = ["IMAGE_ENCODINGS", "ODOMETRY_TYPE", "POSE_TYPES", "label_bag", "metri
 _LOG = logging.getLogger(__name__)
 _NS_PER_S = 1_000_000_000
 
-#: Image encodings the bag labeler matches (``bgr8`` is reordered to RGB first).
-IMAGE_ENCODINGS = ("mono8", "rgb8", "bgr8")
 ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
 #: Message types accepted on the pose topic.
 POSE_TYPES = (topics.POSE_TYPE, ODOMETRY_TYPE)
@@ -243,16 +250,26 @@ class _BagLabeler:
         sync: StampSynchronizer,
         max_pose_gap: float,
         max_pose_extrapolation: float,
+        stereo_input: StereoInput,
         confidence: OnlineConfidence | None = None,
     ) -> None:
         self.bag, self.writer, self.ns = bag, writer, namespace
         self.confidence = confidence
         self.matcher_params, self.labeler_params = matcher, labeler
-        self.topic = {name: topics.bag_topic(name, namespace) for name in (*topics.INPUT_TOPICS, *_OUTPUTS)}
+        self.input = stereo_input
+        self.topic = stereo_input.topics(namespace)
+        self.left_topic, self.right_topic = self.topic[stereo_input.left_image], self.topic[stereo_input.right_image]
         self.pose_topic, self.disparity_topic = pose_topic, disparity_topic
         self.sync = sync
-        self.poses = PoseBuffer()
-        self.max_pose_gap, self.max_pose_extrapolation = max_pose_gap, max_pose_extrapolation
+        self.images = StereoImages(stereo_input)
+        self.tf: TFBuffer | None = None
+        self.poses: TopicPoses | TFPoses
+        if stereo_input.pose_source == "tf":
+            assert stereo_input.world_frame is not None  # StereoInput checks it
+            self.tf = TFBuffer(max_gap_s=max_pose_gap, max_extrapolation_s=max_pose_extrapolation)
+            self.poses = TFPoses(self.tf, stereo_input.world_frame, stereo_input.camera_frame)
+        else:
+            self.poses = TopicPoses(max_gap_s=max_pose_gap, max_extrapolation_s=max_pose_extrapolation)
         self.pose_wait_ns = round(max_pose_gap * _NS_PER_S)
         self.make = _Messages(writer.typestore, _OPENCV_DELTA_D, matcher)
         self.drop = _Drops()
@@ -298,8 +315,11 @@ class _BagLabeler:
         for key, count in self.sync.backwards.items():
             if count:
                 self.drop.counts[f"stamp_backwards_{key}"] += count
-        if self.poses.out_of_order:
-            self.drop.counts["pose_out_of_order"] += self.poses.out_of_order
+        if isinstance(self.poses, TopicPoses) and self.poses.buffer.out_of_order:
+            self.drop.counts["pose_out_of_order"] += self.poses.buffer.out_of_order
+        if self.tf is not None:
+            for reason, count in self.tf.refused.items():
+                self.drop.counts[f"tf_{reason}"] += count
 
     def _decode(self, data: bytes, msgtype: str, topic: str) -> Any | None:
         try:
@@ -310,23 +330,28 @@ class _BagLabeler:
 
     def _dispatch(self, topic: str, log_ns: int, data: bytes, msgtype: str) -> None:
         t = self.topic
-        if topic in (t[topics.LEFT_IMAGE], t[topics.RIGHT_IMAGE]) or topic == self.disparity_topic:
+        if topic in (self.left_topic, self.right_topic) or topic == self.disparity_topic:
             msg = self._decode(data, msgtype, topic)
             if msg is None:
                 return
-            key = _LEFT if topic == t[topics.LEFT_IMAGE] else _RIGHT if topic == t[topics.RIGHT_IMAGE] else _EXTERNAL
+            key = _LEFT if topic == self.left_topic else _RIGHT if topic == self.right_topic else _EXTERNAL
             if key in self.sync.keys:
                 self._synchronise(key, msg)
         elif topic in (t[topics.LEFT_INFO], t[topics.RIGHT_INFO]):
             msg = self._decode(data, msgtype, topic)
             if msg is not None:
                 self._camera_info("left" if topic == t[topics.LEFT_INFO] else "right", msg)
-        elif topic == self.pose_topic:
+        elif self.tf is not None and topic in (t["tf"], t["tf_static"]):
+            msg = self._decode(data, msgtype, topic)
+            if msg is not None:
+                for problem in self.tf.add_message(msg, static=topic == t["tf_static"]):
+                    self.drop("bad_transform", f"{topic} at log time {log_ns} ns: {problem}")
+        elif isinstance(self.poses, TopicPoses) and topic == self.pose_topic:
             msg = self._decode(data, msgtype, topic)
             if msg is None:
                 return
             try:
-                self.poses.add_message(msg)
+                self.poses.buffer.add_message(msg)
             except PoseError as exc:
                 self.drop("bad_pose", f"a pose message on {topic} at log time {log_ns} ns: {exc}")
         elif topic == t[topics.GT_DISPARITY]:
@@ -350,7 +375,7 @@ class _BagLabeler:
         if len(self.infos) < 2:
             return
         try:
-            camera = stereo_camera_from_camera_infos(self.infos["left"], self.infos["right"])
+            camera = self.images.camera_from_infos(self.infos["left"], self.infos["right"])
         except CalibrationError as exc:
             self.drop("bad_camera_info", f"a {side} camera_info: {exc}")
             del self.infos[side]
@@ -358,6 +383,8 @@ class _BagLabeler:
         if self.camera is None:
             self.camera = camera
             self.session = LabelingSession(camera, self.matcher_params, self.labeler_params, self.confidence)
+            if isinstance(self.poses, TFPoses):
+                self.poses.set_camera(str(self.infos["left"].header.frame_id), self.images.raw_from_rectified)
         elif camera != self.camera:
             # The session's window holds views of the first calibration; a new one would mix cameras.
             self.drop("camera_info_changed", f"a {side} camera_info differing from the first calibration")
@@ -381,20 +408,11 @@ class _BagLabeler:
                 del self.ground_truth[stamp]
 
     def _image(self, msg: Any, side: str, index: int) -> NDArray[np.uint8] | None:
-        encoding = str(msg.encoding)
-        if encoding not in IMAGE_ENCODINGS:
-            self.drop(
-                "bad_encoding",
-                f"frame {index}: {side} image encoding {encoding!r} (expected {', '.join(IMAGE_ENCODINGS)})",
-                index,
-            )
-            return None
         try:
-            pixels = image_to_numpy(msg)
-        except ConversionError as exc:
-            self.drop("bad_image", f"frame {index}: {side} image: {exc}", index)
+            return self.images.pixels(msg, side)
+        except ImageError as exc:
+            self.drop(exc.reason, f"frame {index}: {exc}", index)
             return None
-        return np.ascontiguousarray(pixels[:, :, ::-1]) if encoding == "bgr8" else pixels
 
     def _process(self, frame: _Frame) -> None:
         index = frame.index
@@ -419,12 +437,10 @@ class _BagLabeler:
                 index,
             )
             return
-        lookup = self.poses.lookup(
-            frame.stamp_ns, max_gap_s=self.max_pose_gap, max_extrapolation_s=self.max_pose_extrapolation
-        )
+        lookup = self.poses.pose_at(frame.stamp_ns)
         if lookup.pose is None:
-            reason = lookup.reason.value if lookup.reason is not None else "no_pose"
-            self.drop(reason, f"frame {index}: no pose at its stamp {frame.stamp_ns} ns", index)
+            reason = lookup.reason or "no_pose"
+            self.drop(reason, f"frame {index}: no pose at its stamp {frame.stamp_ns} ns: {lookup.detail}", index)
             return
         external = None
         if frame.external is not None:
@@ -490,13 +506,14 @@ class _BagLabeler:
             self.results.append((index, stamp / _NS_PER_S, evaluate_view(result, self.evaluation.pop(index))))
 
 
-def _pose_topic(bag: Bag, namespace: str, pose_topic: str | None) -> str:
-    name = pose_topic if pose_topic is not None else topics.bag_topic(topics.POSE, namespace)
+def _pose_topic(bag: Bag, topic_map: dict[str, str], pose_topic: str | None) -> str:
+    name = pose_topic if pose_topic is not None else topic_map[topics.POSE]
     summary = bag.topics.get(name)
     if summary is None:
         raise BagError(
             f"bag {bag.path} has no pose topic {name}; the labeler needs the left camera's pose "
-            f"({' or '.join(POSE_TYPES)}); choose another with pose_topic="
+            f"({' or '.join(POSE_TYPES)}); choose another with pose_topic=, or read TF "
+            "(pose_source tf with a world frame)"
         )
     if summary.msgtype not in POSE_TYPES:
         raise BagError(
@@ -505,22 +522,34 @@ def _pose_topic(bag: Bag, namespace: str, pose_topic: str | None) -> str:
     return name
 
 
-def _check_topics(bag: Bag, namespace: str, disparity_topic: str | None) -> None:
+def _check_topics(bag: Bag, stereo_input: StereoInput, topic_map: dict[str, str], disparity_topic: str | None) -> None:
     required = {
-        name: kind for name, kind in topics.INPUT_TOPICS.items() if name not in (topics.POSE, topics.GT_DISPARITY)
+        stereo_input.left_image: stereo_input.image_type,
+        stereo_input.right_image: stereo_input.image_type,
+        topics.LEFT_INFO: topics.CAMERA_INFO_TYPE,
+        topics.RIGHT_INFO: topics.CAMERA_INFO_TYPE,
     }
+    if stereo_input.pose_source == "tf":
+        required["tf"] = topics.TF_TYPE
     for name, msgtype in required.items():
-        topic = topics.bag_topic(name, namespace)
+        topic = topic_map[name]
         summary = bag.topics.get(topic)
         if summary is None:
-            raise BagError(f"bag {bag.path} has no topic {topic} ({msgtype}), which the labeler needs")
+            hint = ""
+            if name == "tf" and topic_map["tf_static"] in bag.topics:
+                hint = " (it has only static transforms: a moving camera needs /tf)"
+            elif name in (stereo_input.left_image, stereo_input.right_image):
+                other = topic + topics.COMPRESSED_SUFFIX
+                if other in bag.topics:
+                    hint = f" (it has {other}: use image_transport compressed)"
+            raise BagError(f"bag {bag.path} has no topic {topic} ({msgtype}), which the labeler needs{hint}")
         if summary.msgtype != msgtype:
             raise BagError(f"topic {topic} of bag {bag.path} carries {summary.msgtype}; expected {msgtype}")
     if disparity_topic is not None:
         summary = bag.topics.get(disparity_topic)
         if summary is None or summary.msgtype != topics.DISPARITY_TYPE:
             raise BagError(f"bag {bag.path} has no {topics.DISPARITY_TYPE} topic {disparity_topic} (disparity_topic)")
-    clashes = [topics.bag_topic(n, namespace) for n in _OUTPUTS if topics.bag_topic(n, namespace) in bag.topics]
+    clashes = [topic_map[n] for n in _OUTPUTS if topic_map[n] in bag.topics]
     clashes = [c for c in clashes if c != disparity_topic]
     if clashes:
         raise BagError(
@@ -544,6 +573,7 @@ def label_bag(
     max_pose_gap: float = 0.5,
     max_pose_extrapolation: float = 0.05,
     model_out: str | Path | None = None,
+    stereo_input: StereoInput | None = None,
 ) -> dict[str, Any]:
     """Label a stereo bag and write the labels, depth and disparity into a new MCAP bag (module docstring).
 
@@ -562,6 +592,8 @@ def label_bag(
         max_pose_gap: largest time between the two poses interpolated, seconds.
         max_pose_extrapolation: how far past the newest (or before the oldest) pose an image may be, seconds.
         model_out: confidence model file written after every retraining; None: ``confidence.model_out``.
+        stereo_input: topic remaps, image transport, rectification and pose source
+            (:class:`~selfcontra_ros.bags.stereo_input.StereoInput`); None: the package's own layout.
 
     Returns:
         The content of ``metrics.json`` (NaN, not ``null``, for undefined figures).
@@ -598,12 +630,20 @@ def label_bag(
         if not (math.isfinite(value) and value >= 0):
             raise SelfContraError(f"{name} must be a finite number of seconds >= 0, got {value!r}")
 
+    stereo_input = stereo_input if stereo_input is not None else StereoInput()
+    if pose_topic is not None and stereo_input.pose_source == "tf":
+        raise SelfContraError(f"pose_topic {pose_topic} is read with pose_source 'pose' only, not 'tf'")
     with open_bag(in_bag) as bag:
-        ns = resolve_namespace(list(bag.topics), namespace)
-        _check_topics(bag, ns, disparity_topic)
-        pose_name = _pose_topic(bag, ns, pose_topic)
+        ns = stereo_input.namespace(list(bag.topics), namespace)
+        topic_map = stereo_input.topics(ns)
+        _check_topics(bag, stereo_input, topic_map, disparity_topic)
+        pose_name = _pose_topic(bag, topic_map, pose_topic) if stereo_input.pose_source == "pose" else ""
         out_bag.parent.mkdir(parents=True, exist_ok=True)
-        custom = {"selfcontra.labelled_from": str(in_bag.resolve()), "selfcontra.namespace": ns}
+        custom = {
+            "selfcontra.labelled_from": str(in_bag.resolve()),
+            "selfcontra.namespace": ns,
+            CUSTOM_DATA_KEY: stereo_input.to_json(),
+        }
         status = "failed"
         run: _BagLabeler | None = None
         confidence = None if external else OnlineConfidence(confidence_params, background=False, log=_LOG.info)
@@ -620,6 +660,7 @@ def label_bag(
                     sync=synchronizer,
                     max_pose_gap=max_pose_gap,
                     max_pose_extrapolation=max_pose_extrapolation,
+                    stereo_input=stereo_input,
                     confidence=confidence,
                 )
                 run.run(progress)
@@ -639,6 +680,7 @@ def label_bag(
             # Beside "params", whose schema stays the sequence labeler's.
             report["confidence_params"] = dataclasses.asdict(confidence_params)
             report["confidence"] = confidence.stats() if confidence is not None else None
+            report["input"] = json.loads(stereo_input.to_json())
             report["recovered"] = bag.recovery  # what a damaged input still held (Bag.recovery), None if intact
             if out_bag.is_dir():
                 write_json(metrics_path(out_bag), report)

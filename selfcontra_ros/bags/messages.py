@@ -64,6 +64,15 @@ class MessageBuilder:
         roi = self._roi(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
         return self._info(header=self.header(stamp_ns, frame_id), roi=roi, **fields)
 
+    def camera_info_of(self, fields: dict[str, Any], stamp_ns: int, frame_id: str) -> Any:
+        """``sensor_msgs/CameraInfo`` of given fields (``width``, ``height``, ``distortion_model``, ``d``,
+        ``k``, ``r``, ``p``; binning 0, full region of interest), e.g. a raw camera's distorted calibration."""
+        roi = self._roi(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+        values = {"binning_x": 0, "binning_y": 0, **fields}
+        for name in "dkrp":
+            values[name] = np.asarray(values[name], dtype=np.float64).reshape(-1)
+        return self._info(header=self.header(stamp_ns, frame_id), roi=roi, **values)
+
     def pose_stamped(self, pose: NDArray[np.float64], stamp_ns: int, frame_id: str = topics.WORLD_FRAME) -> Any:
         """``geometry_msgs/PoseStamped`` of a 4x4 pose ``T_frame_left``."""
         x, y, z = (float(v) for v in pose[:3, 3])
