@@ -13,10 +13,14 @@ import signal
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from selfcontra_ros import interrupts
 from selfcontra_ros.datasets import SCENES
 from selfcontra_ros.errors import SelfContraError
+
+if TYPE_CHECKING:
+    from selfcontra_ros.bags.stereo_input import StereoInput
 
 __all__ = ["build_parser", "main", "parse_frame_range", "parse_size"]
 
@@ -42,6 +46,58 @@ def parse_frame_range(text: str) -> slice:
     except ValueError:
         raise argparse.ArgumentTypeError(f"frame range bounds must be integers, got {text!r}") from None
     return slice(start, stop)
+
+
+def _add_input_options(group: argparse._ArgumentGroup, *, poses: bool = True) -> None:
+    """The options of :class:`~selfcontra_ros.bags.stereo_input.StereoInput`: a robot's own bag layout."""
+    group.add_argument(
+        "--remap",
+        action="append",
+        default=[],
+        metavar="FROM:=TO",
+        help="rename a topic the package reads, as a node's -r does (repeatable), e.g. "
+        "left/image_rect:=/zed/zed_node/left/image_rect_color; relative TO lives in the namespace",
+    )
+    group.add_argument(
+        "--image-transport",
+        choices=("raw", "compressed"),
+        default="raw",
+        help="raw: sensor_msgs/Image; compressed: sensor_msgs/CompressedImage on <image topic>/compressed",
+    )
+    group.add_argument(
+        "--rectify",
+        action="store_true",
+        help="read left/right image_raw and rectify them with their camera_info (D, K, R, P)",
+    )
+    if poses:
+        group.add_argument(
+            "--pose-source",
+            choices=("pose", "tf"),
+            default="pose",
+            help="pose: a PoseStamped/Odometry topic of the left camera; tf: /tf and /tf_static",
+        )
+        group.add_argument("--world-frame", default=None, help="fixed frame of the TF poses, e.g. odom or map")
+        group.add_argument(
+            "--camera-frame", default=None, help="left camera frame in TF (default: the left camera_info's frame_id)"
+        )
+
+
+def _stereo_input(args: argparse.Namespace) -> StereoInput | None:
+    """The StereoInput of the options; None when all are defaults (the bag's own record then decides)."""
+    from selfcontra_ros.bags.stereo_input import StereoInput
+
+    pose_source = getattr(args, "pose_source", "pose") or "pose"
+    defaults = not args.remap and args.image_transport == "raw" and not args.rectify and pose_source == "pose"
+    if defaults and not getattr(args, "world_frame", None) and not getattr(args, "camera_frame", None):
+        return None
+    return StereoInput(
+        image_transport=args.image_transport,
+        rectify=args.rectify,
+        remaps=tuple(args.remap),
+        pose_source=pose_source,
+        world_frame=getattr(args, "world_frame", None),
+        camera_frame=getattr(args, "camera_frame", None),
+    )
 
 
 def _cmd_synth(args: argparse.Namespace) -> int:
@@ -74,6 +130,7 @@ def _cmd_label(args: argparse.Namespace) -> int:
             pose_topic=args.pose_topic,
             disparity_topic=args.disparity_topic,
             model_out=Path(args.model_out) if args.model_out else None,
+            stereo_input=_stereo_input(args),
         )
         written = f"wrote the labelled bag {out} and {metrics_path(out)}"
         if args.model_out:
@@ -81,6 +138,9 @@ def _cmd_label(args: argparse.Namespace) -> int:
     else:
         from selfcontra_ros.pipeline import label_sequence
 
+        robot = args.remap or args.image_transport != "raw" or args.rectify or args.pose_source != "pose"
+        if robot:
+            raise SelfContraError("--remap, --image-transport, --rectify and --pose-source apply to bag input")
         if args.model_out:
             raise SelfContraError("--model-out applies to bag input (online confidence runs in the bag labeler)")
         metrics = label_sequence(
@@ -116,6 +176,7 @@ def _cmd_kitti2mcap(args: argparse.Namespace) -> int:
         sequence=args.sequence,
         stamp_offset_ns=offset_ns,
         estimate_poses=args.estimate_poses,
+        compress_images=args.compress_images,
     )
     with open_bag(out) as bag:
         topics = ", ".join(f"{t.name} ({t.message_count})" for t in bag.topics.values())
@@ -123,10 +184,30 @@ def _cmd_kitti2mcap(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_inspect(args: argparse.Namespace) -> int:
+    from selfcontra_ros.bags.inspect import format_report, inspect_bag
+
+    print(format_report(inspect_bag(Path(args.input))), end="")
+    return 0
+
+
 def _cmd_odometry(args: argparse.Namespace) -> int:
+    from selfcontra_ros.bags.reader import is_bag
     from selfcontra_ros.odometry.run import odometry_command
 
-    odometry_command(Path(args.input), Path(args.out), sequence=args.sequence, namespace=args.namespace, step=args.step)
+    robot = args.remap or args.image_transport != "raw" or args.rectify or args.pose_source is not None
+    if robot and not is_bag(Path(args.input)):
+        raise SelfContraError("--remap, --image-transport, --rectify and --pose-source apply to bag input")
+    odometry_command(
+        Path(args.input),
+        Path(args.out),
+        sequence=args.sequence,
+        namespace=args.namespace,
+        step=args.step,
+        stereo_input=_stereo_input(args),
+        reference_poses=args.pose_source is not None,
+        slop=args.slop,
+    )
     return 0
 
 
@@ -212,6 +293,7 @@ def build_parser() -> argparse.ArgumentParser:
     bag_options.add_argument(
         "--model-out", default=None, help="save the confidence forest trained online on the labels (.npz)"
     )
+    _add_input_options(label.add_argument_group("a robot's own bag (see 'selfcontra inspect BAG')"))
     label.set_defaults(handler=_cmd_label)
 
     k2m = sub.add_parser("kitti2mcap", help="convert a KITTI odometry sequence to a rosbag2 bag (MCAP storage)")
@@ -232,7 +314,20 @@ def build_parser() -> argparse.ArgumentParser:
     k2m.add_argument(
         "--estimate-poses", action="store_true", help="no poses in the sequence: estimate them with visual odometry"
     )
+    k2m.add_argument(
+        "--compress-images",
+        choices=("jpeg", "png"),
+        default=None,
+        help="write the images as sensor_msgs/CompressedImage on .../image_rect/compressed (image_transport)",
+    )
     k2m.set_defaults(handler=_cmd_kitti2mcap)
+
+    inspect = sub.add_parser(
+        "inspect",
+        help="a bag's topics, types, counts and rates, its stereo pairs and TF frames, and a suggested label command",
+    )
+    inspect.add_argument("input", help="rosbag2 bag (folder or .mcap)")
+    inspect.set_defaults(handler=_cmd_inspect)
 
     odo = sub.add_parser(
         "odometry",
@@ -245,6 +340,17 @@ def build_parser() -> argparse.ArgumentParser:
     odo.add_argument("--sequence", default=None, help="sequence of a root holding several (e.g. 06)")
     odo.add_argument("--namespace", default=None, help="stereo topic namespace of a bag (default: found in the bag)")
     odo.add_argument("--step", type=int, default=1, help="metrics: a first frame every STEP frames (KITTI devkit: 10)")
+    odo_bag = odo.add_argument_group("a robot's own bag")
+    odo_bag.add_argument("--slop", type=float, default=0.0, help="pair left/right images within S seconds")
+    _add_input_options(odo_bag, poses=False)
+    odo_bag.add_argument(
+        "--pose-source",
+        choices=("pose", "tf"),
+        default=None,
+        help="the bag's own poses (pose topic or TF) as the reference for the KITTI metrics (default: none)",
+    )
+    odo_bag.add_argument("--world-frame", default=None, help="fixed frame of the TF poses, e.g. odom")
+    odo_bag.add_argument("--camera-frame", default=None, help="left camera frame in TF (default: camera_info's)")
     odo.set_defaults(handler=_cmd_odometry)
 
     train = sub.add_parser(

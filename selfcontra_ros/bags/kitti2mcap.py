@@ -13,6 +13,13 @@ topic                               type                          content
 ``/stereo/ground_truth/disparity``  stereo_msgs/DisparityImage    left disparity (if the sequence has ``disp_*``)
 ==================================  ============================  ==============================================
 
+**Compressed images** (``compress_images="jpeg"`` or ``"png"``): the two
+image topics become ``/stereo/left|right/image_rect/compressed``
+(``sensor_msgs/CompressedImage``, ``mono8; jpeg compressed mono8`` or, for
+colour, ``rgb8; jpeg compressed bgr8``, as image_transport writes them); the
+bag records it in ``custom_data`` (``selfcontra.input``), so the offline
+commands read it without ``--image-transport compressed``.
+
 **Stamps.** Header stamps and bag log times are equal:
 ``stamp_offset_ns + round(t * 1e9)`` with ``t`` the sequence stamp in seconds
 (``times.txt``, else 10 Hz from 0). The default offset,
@@ -46,8 +53,10 @@ from tqdm import tqdm
 
 from selfcontra_ros import interrupts
 from selfcontra_ros.bags import topics
+from selfcontra_ros.bags.compressed import IMAGE_FORMATS
 from selfcontra_ros.bags.messages import MessageBuilder
 from selfcontra_ros.bags.reader import BagError
+from selfcontra_ros.bags.stereo_input import CUSTOM_DATA_KEY, StereoInput
 from selfcontra_ros.bags.writer import COMPRESSIONS, BagWriter
 from selfcontra_ros.datasets.kitti import StereoFrame, open_sequence
 from selfcontra_ros.errors import DatasetError
@@ -76,12 +85,23 @@ def seconds_to_nanoseconds(seconds: float) -> int:
     return whole * _NS_PER_S + round((seconds - whole) * _NS_PER_S)
 
 
-def _write_frame(bag: BagWriter, make: MessageBuilder, camera: StereoCamera, frame: StereoFrame, stamp_ns: int) -> None:
+def _write_frame(
+    bag: BagWriter,
+    make: MessageBuilder,
+    camera: StereoCamera,
+    frame: StereoFrame,
+    stamp_ns: int,
+    compress_images: str | None = None,
+) -> None:
     """Append one frame's messages, all stamped ``stamp_ns``, in the order of the module table."""
     encoding = "rgb8" if frame.left.ndim == 3 else "mono8"
     left, right = topics.LEFT_FRAME, topics.RIGHT_FRAME
-    bag.write(topics.bag_topic(topics.LEFT_IMAGE), stamp_ns, make.image(frame.left, encoding, stamp_ns, left))
-    bag.write(topics.bag_topic(topics.RIGHT_IMAGE), stamp_ns, make.image(frame.right, encoding, stamp_ns, right))
+    for name, pixels, fid in ((topics.LEFT_IMAGE, frame.left, left), (topics.RIGHT_IMAGE, frame.right, right)):
+        if compress_images is None:
+            bag.write(topics.bag_topic(name), stamp_ns, make.image(pixels, encoding, stamp_ns, fid))
+        else:
+            msg = make.compressed_image(pixels, encoding, stamp_ns, fid, image_format=compress_images)
+            bag.write(topics.bag_topic(name) + topics.COMPRESSED_SUFFIX, stamp_ns, msg)
     bag.write(topics.bag_topic(topics.LEFT_INFO), stamp_ns, make.camera_info(camera, stamp_ns, left, right=False))
     bag.write(topics.bag_topic(topics.RIGHT_INFO), stamp_ns, make.camera_info(camera, stamp_ns, right, right=True))
     if frame.pose is not None:
@@ -105,6 +125,7 @@ def kitti_to_mcap(
     stamp_offset_ns: int = DEFAULT_STAMP_OFFSET_NS,
     progress: bool = True,
     estimate_poses: bool = False,
+    compress_images: str | None = None,
 ) -> Path:
     """Write a KITTI odometry sequence as a rosbag2 bag folder with MCAP storage (see the module docstring).
 
@@ -124,6 +145,7 @@ def kitti_to_mcap(
             package's stereo visual odometry and write ``/stereo/pose`` for the
             frames whose pose is reliable (unreliable frames get no pose message,
             so the labelers interpolate or drop them).
+        compress_images: ``"jpeg"`` or ``"png"``: images as ``sensor_msgs/CompressedImage``; None: raw.
 
     Returns:
         The bag folder ``out``.
@@ -134,6 +156,8 @@ def kitti_to_mcap(
         CalibrationError: the sequence's calibration is not a rectified pair.
     """
     out = Path(out)
+    if compress_images is not None and compress_images not in IMAGE_FORMATS:
+        raise BagError(f"compress_images is {compress_images!r}; expected one of {', '.join(IMAGE_FORMATS)} or None")
     if compress not in COMPRESSIONS:
         raise BagError(f"compress is {compress!r}; expected one of {', '.join(COMPRESSIONS)}")
     if out.exists() or out.is_symlink():
@@ -160,6 +184,8 @@ def kitti_to_mcap(
         "selfcontra.stamp_offset_ns": str(int(stamp_offset_ns)),
         "selfcontra.pose_source": "none" if seq.poses is None else "file" if reliable is None else "odometry",
     }
+    if compress_images is not None:
+        custom_data[CUSTOM_DATA_KEY] = StereoInput(image_transport="compressed").to_json()
     written = 0
     try:
         with BagWriter(out, compress=compress, atomic=True, custom_data=custom_data) as bag:
@@ -170,7 +196,7 @@ def kitti_to_mcap(
                 frame = seq[i]
                 if reliable is not None and not reliable[i]:
                     frame.pose = None  # an unreliable odometry pose is left out rather than written
-                _write_frame(bag, make, seq.camera, frame, stamp_ns)
+                _write_frame(bag, make, seq.camera, frame, stamp_ns, compress_images)
                 written += 1
     except interrupts.Interrupted as exc:
         exc.done = f"converted {written} of {len(indices)} frames; no bag written (a conversion is complete or absent)"

@@ -593,7 +593,8 @@ def label_bag(
         max_pose_extrapolation: how far past the newest (or before the oldest) pose an image may be, seconds.
         model_out: confidence model file written after every retraining; None: ``confidence.model_out``.
         stereo_input: topic remaps, image transport, rectification and pose source
-            (:class:`~selfcontra_ros.bags.stereo_input.StereoInput`); None: the package's own layout.
+            (:class:`~selfcontra_ros.bags.stereo_input.StereoInput`); None: what the bag's ``custom_data``
+            records (``selfcontra.input``, e.g. from ``kitti2mcap --compress-images``), else the package's layout.
 
     Returns:
         The content of ``metrics.json`` (NaN, not ``null``, for undefined figures).
@@ -630,10 +631,11 @@ def label_bag(
         if not (math.isfinite(value) and value >= 0):
             raise SelfContraError(f"{name} must be a finite number of seconds >= 0, got {value!r}")
 
-    stereo_input = stereo_input if stereo_input is not None else StereoInput()
-    if pose_topic is not None and stereo_input.pose_source == "tf":
-        raise SelfContraError(f"pose_topic {pose_topic} is read with pose_source 'pose' only, not 'tf'")
     with open_bag(in_bag) as bag:
+        if stereo_input is None:  # as the bag says it is read (kitti2mcap --compress-images), else the package's layout
+            stereo_input = StereoInput.of_bag(bag.custom_data)
+        if pose_topic is not None and stereo_input.pose_source == "tf":
+            raise SelfContraError(f"pose_topic {pose_topic} is read with pose_source 'pose' only, not 'tf'")
         ns = stereo_input.namespace(list(bag.topics), namespace)
         topic_map = stereo_input.topics(ns)
         _check_topics(bag, stereo_input, topic_map, disparity_topic)
@@ -643,6 +645,7 @@ def label_bag(
             "selfcontra.labelled_from": str(in_bag.resolve()),
             "selfcontra.namespace": ns,
             CUSTOM_DATA_KEY: stereo_input.to_json(),
+            "selfcontra.sync": json.dumps({"mode": sync, "slop": slop}),
         }
         status = "failed"
         run: _BagLabeler | None = None

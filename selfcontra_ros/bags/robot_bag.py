@@ -95,11 +95,8 @@ class RobotLayout:
 
     def remaps(self) -> list[str]:
         """The ``--remap`` rules that map the package's names onto this layout (``--namespace`` :attr:`namespace`)."""
-        rules = []
-        for side in ("left", "right"):
-            camera = self.left_camera if side == "left" else self.right_camera
-            rules += [f"{side}/image_raw:={camera}/image_raw", f"{side}/camera_info:={camera}/camera_info"]
-        return rules
+        cameras = (("left", self.left_camera), ("right", self.right_camera))
+        return [f"{side}/{name}:={camera}/{name}" for name in ("image_raw", "camera_info") for side, camera in cameras]
 
 
 def _rotation(axis: tuple[float, float, float], degrees: float) -> NDArray[np.float64]:

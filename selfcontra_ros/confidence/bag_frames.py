@@ -1,12 +1,20 @@
 """Stereo frames and label images of rosbag2 bags, for ``selfcontra train`` and ``evaluate-confidence``.
 
 A **data bag** (``--data``) gives the stereo pairs under its namespace ``NS``
-(chosen as :func:`~selfcontra_ros.bags.label_bag.resolve_namespace` does):
+(chosen as :meth:`~selfcontra_ros.bags.stereo_input.StereoInput.namespace` does):
 ``NS/left/image_rect`` and ``NS/right/image_rect`` (``mono8``, ``rgb8``;
-``bgr8`` is reordered to RGB) paired by equal header stamp,
+``bgr8`` is reordered to RGB) paired by header stamp,
 ``NS/left/camera_info`` and ``NS/right/camera_info`` (the first valid pair
 fixes the camera; frames of another size are skipped), and, when present,
 ``NS/ground_truth/disparity`` matched to the left image by header stamp.
+A :class:`~selfcontra_ros.bags.stereo_input.StereoInput` (``stereo_input=``)
+reads a robot's own layout: remapped topic names, compressed images,
+``image_raw`` rectified with its camera infos. A bag written by
+``selfcontra label BAG`` records how its input was read (and its
+synchronisation) in ``metadata.yaml``; without ``stereo_input`` that record
+is used, so the labelled bag of a robot's recording is read as it was
+labelled. Undecodable images (bad encoding, corrupt compressed data) are
+skipped and counted, as the bag labeler does.
 Frames are numbered in synchronisation order, as
 :func:`~selfcontra_ros.bags.label_bag.label_bag` numbers them, so frame ``N``
 of a bag written by :func:`~selfcontra_ros.bags.kitti2mcap.kitti_to_mcap` is
@@ -33,20 +41,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from selfcontra_ros.bags import topics
-from selfcontra_ros.bags.label_bag import resolve_namespace
-from selfcontra_ros.bags.reader import BagError, is_bag, open_bag
+from selfcontra_ros.bags.reader import Bag, BagError, is_bag, open_bag
+from selfcontra_ros.bags.stereo_input import ImageError, StereoImages, StereoInput
 from selfcontra_ros.bags.sync import StampSynchronizer
 from selfcontra_ros.datasets.kitti import StereoFrame
 from selfcontra_ros.errors import CalibrationError, ConversionError
 from selfcontra_ros.geometry import StereoCamera
 from selfcontra_ros.labels import NEGATIVE
 from selfcontra_ros.matching.base import MatcherParams
-from selfcontra_ros.ros.conversions import (
-    disparity_from_message,
-    image_to_numpy,
-    stamp_to_nanoseconds,
-    stereo_camera_from_camera_infos,
-)
+from selfcontra_ros.ros.conversions import disparity_from_message, image_to_numpy, stamp_to_nanoseconds
 
 __all__ = ["BagFrame", "BagLabels", "is_bag", "iter_bag_frames", "read_bag_labels"]
 
@@ -54,7 +57,8 @@ _LOG = logging.getLogger(__name__)
 _NS_PER_S = 1_000_000_000
 #: How long (log time) a frame waits for its ground truth after its stamp, nanoseconds; as label_bag's pose wait.
 _GT_WAIT_NS = _NS_PER_S // 2
-_ENCODINGS = ("mono8", "rgb8", "bgr8")
+#: ``metadata.yaml`` custom_data keys written by the bag labeler.
+_NAMESPACE_KEY, _SYNC_KEY = "selfcontra.namespace", "selfcontra.sync"
 
 
 @dataclass
@@ -67,25 +71,38 @@ class BagFrame(StereoFrame):
     stamp_ns: int
 
 
-def _pixels(msg: Any, topic: str, bag: Path) -> NDArray[np.uint8]:
-    encoding = str(msg.encoding)
-    if encoding not in _ENCODINGS:
-        raise BagError(f"bag {bag}: {topic} has encoding {encoding!r}; expected one of {', '.join(_ENCODINGS)}")
-    try:
-        pixels = image_to_numpy(msg)
-    except ConversionError as exc:
-        raise BagError(f"bag {bag}: an image on {topic} is malformed: {exc}") from exc
-    return np.ascontiguousarray(pixels[:, :, ::-1]) if encoding == "bgr8" else pixels
+def _namespace(bag: Bag, stereo_input: StereoInput, namespace: str | None) -> str:
+    """``namespace``, else the one the bag labeler recorded, else found from the left image topic."""
+    if namespace is None and _NAMESPACE_KEY in bag.custom_data:
+        namespace = bag.custom_data[_NAMESPACE_KEY]
+    return stereo_input.namespace(list(bag.topics), namespace)
+
+
+def _sync(bag: Bag) -> StampSynchronizer:
+    """The synchroniser the bag labeler recorded (``{"mode", "slop"}``), else exact."""
+    mode, slop = "exact", 0.0
+    text = bag.custom_data.get(_SYNC_KEY)
+    if text:
+        try:
+            stored = json.loads(text)
+            mode, slop = str(stored["mode"]), float(stored["slop"])
+        except (ValueError, KeyError, TypeError) as exc:
+            raise BagError(f"bag {bag.path}: custom_data {_SYNC_KEY} {text!r} is unreadable: {exc}") from exc
+    return StampSynchronizer(("left", "right"), mode=mode, slop=slop)
 
 
 class _FrameReader:
     """Pairs the stereo images of one bag and attaches camera checks and ground truth."""
 
-    def __init__(self, path: Path, namespace: str, has_gt: bool) -> None:
+    def __init__(
+        self, path: Path, topic: dict[str, str], stereo_input: StereoInput, sync: StampSynchronizer, has_gt: bool
+    ) -> None:
         self.path = path
-        self.topic = {name: topics.bag_topic(name, namespace) for name in topics.INPUT_TOPICS}
+        self.topic = topic
+        self.left_topic, self.right_topic = topic[stereo_input.left_image], topic[stereo_input.right_image]
+        self.images = StereoImages(stereo_input)
         self.has_gt = has_gt
-        self.sync = StampSynchronizer(("left", "right"), mode="exact")
+        self.sync = sync
         self.infos: dict[str, Any] = {}
         self.camera: StereoCamera | None = None
         self.pending: list[tuple[int, int, Any, Any]] = []  # (index, stamp_ns, left msg, right msg)
@@ -95,8 +112,8 @@ class _FrameReader:
 
     def push(self, topic: str, msg: Any) -> None:
         t = self.topic
-        if topic in (t[topics.LEFT_IMAGE], t[topics.RIGHT_IMAGE]):
-            key = "left" if topic == t[topics.LEFT_IMAGE] else "right"
+        if topic in (self.left_topic, self.right_topic):
+            key = "left" if topic == self.left_topic else "right"
             for match in self.sync.push(key, stamp_to_nanoseconds(msg.header.stamp), msg).matches:
                 self.pending.append((self.synchronised, match.stamp_ns, *match.items))
                 self.synchronised += 1
@@ -104,7 +121,7 @@ class _FrameReader:
             self.infos["left" if topic == t[topics.LEFT_INFO] else "right"] = msg
             if self.camera is None and len(self.infos) == 2:
                 try:
-                    self.camera = stereo_camera_from_camera_infos(self.infos["left"], self.infos["right"])
+                    self.camera = self.images.camera_from_infos(self.infos["left"], self.infos["right"])
                 except CalibrationError as exc:
                     self._skip("bad_camera_info", f"bag {self.path}: a camera_info pair: {exc}")
         elif topic == t[topics.GT_DISPARITY]:
@@ -135,8 +152,12 @@ class _FrameReader:
         if self.camera is None:
             self._skip("no_camera_info", f"bag {self.path}: frame {index} has no valid camera_info pair before it")
             return None
-        left = _pixels(left_msg, self.topic[topics.LEFT_IMAGE], self.path)
-        right = _pixels(right_msg, self.topic[topics.RIGHT_IMAGE], self.path)
+        try:
+            left = self.images.pixels(left_msg, "left")
+            right = self.images.pixels(right_msg, "right")
+        except ImageError as exc:
+            self._skip(exc.reason, f"bag {self.path}: frame {index}: {exc}")
+            return None
         size = (self.camera.height, self.camera.width)
         if left.shape != right.shape or left.shape[:2] != size:
             self._skip(
@@ -165,31 +186,37 @@ class _FrameReader:
         )
 
 
-def iter_bag_frames(path: Path | str, *, namespace: str | None = None) -> Iterator[BagFrame]:
+def iter_bag_frames(
+    path: Path | str, *, namespace: str | None = None, stereo_input: StereoInput | None = None
+) -> Iterator[BagFrame]:
     """The stereo frames of a bag in stamp order (see the module docstring); images uint8, HxW or HxWx3 RGB.
 
     Args:
         path: rosbag2 folder or ``.mcap`` file.
         namespace: namespace of the stereo topics; chosen from the bag when None.
+        stereo_input: how to read the bag; None: as recorded by the bag labeler, else the package's layout.
 
     Raises:
-        BagError: the bag cannot be read, lacks an image or camera_info topic,
-            holds images of an unsupported encoding, or yields no frame.
+        BagError: the bag cannot be read, lacks an image or camera_info topic, or yields no frame.
     """
     path = Path(path)
     with open_bag(path) as bag:
-        ns = resolve_namespace(list(bag.topics), namespace)
-        needed = (topics.LEFT_IMAGE, topics.RIGHT_IMAGE, topics.LEFT_INFO, topics.RIGHT_INFO)
-        for name in needed:
-            topic = topics.bag_topic(name, ns)
-            if topic not in bag.topics:
-                raise BagError(
-                    f"bag {path} has no topic {topic} ({topics.INPUT_TOPICS[name]}); it holds no stereo frames"
-                )
-        gt_topic = topics.bag_topic(topics.GT_DISPARITY, ns)
+        read_as = stereo_input if stereo_input is not None else StereoInput.of_bag(bag.custom_data)
+        ns = _namespace(bag, read_as, namespace)
+        topic = read_as.topics(ns)
+        needed = {
+            read_as.left_image: read_as.image_type,
+            read_as.right_image: read_as.image_type,
+            topics.LEFT_INFO: topics.CAMERA_INFO_TYPE,
+            topics.RIGHT_INFO: topics.CAMERA_INFO_TYPE,
+        }
+        for name, msgtype in needed.items():
+            if topic[name] not in bag.topics:
+                raise BagError(f"bag {path} has no topic {topic[name]} ({msgtype}); it holds no stereo frames")
+        gt_topic = topic[topics.GT_DISPARITY]
         has_gt = gt_topic in bag.topics
-        reader = _FrameReader(path, ns, has_gt)
-        wanted = [topics.bag_topic(n, ns) for n in needed] + ([gt_topic] if has_gt else [])
+        reader = _FrameReader(path, topic, read_as, _sync(bag), has_gt)
+        wanted = [topic[n] for n in needed] + ([gt_topic] if has_gt else [])
         yielded = 0
         for message in bag.messages(wanted):
             reader.push(message.topic, message.msg)
@@ -200,7 +227,9 @@ def iter_bag_frames(path: Path | str, *, namespace: str | None = None) -> Iterat
             yielded += 1
             yield frame
     if not yielded:
-        detail = ", ".join(f"{k}: {v}" for k, v in sorted(reader.skipped.items())) or "no stereo pair had equal stamps"
+        detail = ", ".join(f"{k}: {v}" for k, v in sorted(reader.skipped.items())) or (
+            f"no stereo pair had {'equal stamps' if reader.sync.mode == 'exact' else 'stamps within the slop'}"
+        )
         raise BagError(f"bag {path} gave no stereo frame ({reader.synchronised} pairs synchronised; {detail})")
 
 
@@ -242,8 +271,9 @@ def read_bag_labels(path: Path | str, *, namespace: str | None = None) -> BagLab
     """
     path = Path(path)
     with open_bag(path) as bag:
-        ns = resolve_namespace(list(bag.topics), namespace)
-        topic = topics.bag_topic(topics.LABELS, ns)
+        read_as = StereoInput.of_bag(bag.custom_data)
+        ns = _namespace(bag, read_as, namespace)
+        topic = read_as.topics(ns)[topics.LABELS]
         if topic not in bag.topics:
             raise BagError(
                 f"bag {path} has no label topic {topic}; "

@@ -25,9 +25,11 @@ arguments' files and write only the output paths given.
 from __future__ import annotations
 
 import csv
+import itertools
+import logging
 import time
 from collections import Counter
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -39,7 +41,9 @@ from tqdm import tqdm
 from selfcontra_ros import interrupts
 from selfcontra_ros.bags import topics
 from selfcontra_ros.bags.reader import BagError, is_bag, open_bag
+from selfcontra_ros.bags.stereo_input import ImageError, StereoImages, StereoInput, TFPoses, TopicPoses
 from selfcontra_ros.bags.sync import StampSynchronizer
+from selfcontra_ros.bags.tf import TFBuffer
 from selfcontra_ros.datasets.kitti import OdometrySequence, StereoScene, open_sequence, write_poses
 from selfcontra_ros.geometry import StereoCamera
 from selfcontra_ros.odometry.metrics import SHORT_LENGTHS, OdometryMetrics, evaluate_odometry
@@ -48,6 +52,7 @@ from selfcontra_ros.pipeline import write_json
 
 __all__ = [
     "OnlineOdometry",
+    "bag_reference_poses",
     "bag_stereo_frames",
     "check_usable",
     "estimate_bag_poses",
@@ -59,6 +64,7 @@ __all__ = [
     "write_quality",
 ]
 
+_LOG = logging.getLogger(__name__)
 _NS_PER_S = 1_000_000_000
 _LEFT, _RIGHT = "left", "right"
 
@@ -180,14 +186,9 @@ def estimate_sequence_poses(
 # --------------------------------------------------------------------------- bags
 
 
-def _read_camera(bag_path: Path | str, namespace: str) -> StereoCamera:
-    from selfcontra_ros.ros.conversions import stereo_camera_from_camera_infos
-
+def _read_camera(bag_path: Path | str, topic: dict[str, str], images: StereoImages) -> StereoCamera:
     infos: dict[str, Any] = {}
-    wanted = {
-        topics.bag_topic(topics.LEFT_INFO, namespace): _LEFT,
-        topics.bag_topic(topics.RIGHT_INFO, namespace): _RIGHT,
-    }
+    wanted = {topic[topics.LEFT_INFO]: _LEFT, topic[topics.RIGHT_INFO]: _RIGHT}
     with open_bag(bag_path) as bag:
         missing = [t for t in wanted if t not in bag.topics]
         if missing:
@@ -196,54 +197,124 @@ def _read_camera(bag_path: Path | str, namespace: str) -> StereoCamera:
             infos.setdefault(wanted[message.topic], message.msg)
             if len(infos) == 2:
                 break
-    return stereo_camera_from_camera_infos(infos[_LEFT], infos[_RIGHT])
+    return images.camera_from_infos(infos[_LEFT], infos[_RIGHT])
+
+
+def _bag_input(
+    bag_path: Path | str, stereo_input: StereoInput | None, namespace: str | None
+) -> tuple[StereoInput, str]:
+    """The input description (given, else the bag's record) and the namespace of a bag."""
+    with open_bag(bag_path) as bag:
+        read_as = stereo_input if stereo_input is not None else StereoInput.of_bag(bag.custom_data)
+        return read_as, read_as.namespace(list(bag.topics), namespace)
 
 
 def bag_stereo_frames(
-    bag_path: Path | str, *, namespace: str | None = None, slop: float = 0.0
+    bag_path: Path | str,
+    *,
+    namespace: str | None = None,
+    slop: float = 0.0,
+    stereo_input: StereoInput | None = None,
 ) -> tuple[StereoCamera, Iterator[tuple[int, NDArray[np.uint8], NDArray[np.uint8]]]]:
     """The stereo camera of a bag and an iterator over its synchronised ``(stamp_ns, left, right)`` pairs.
 
-    Images are paired by header stamp (exactly, or within ``slop`` seconds);
-    ``bgr8`` images are turned to RGB, others passed as decoded.
+    Images are paired by header stamp (exactly, or within ``slop`` seconds),
+    read as ``stereo_input`` says (remapped names, compressed, rectified;
+    see :mod:`selfcontra_ros.bags.stereo_input`); colour images come as RGB.
 
     Raises:
-        BagError: missing or corrupt bag, missing topics.
-        CalibrationError: camera infos that do not describe a rectified pair.
+        BagError: missing or corrupt bag, missing topics, an image that cannot be decoded.
+        CalibrationError: camera infos that do not describe a (rectifiable) pair.
     """
-    from selfcontra_ros.bags.label_bag import resolve_namespace
-    from selfcontra_ros.ros.conversions import image_to_numpy
-
-    with open_bag(bag_path) as bag:
-        ns = resolve_namespace(list(bag.topics), namespace)
-    camera = _read_camera(bag_path, ns)
-    sides = {topics.bag_topic(topics.LEFT_IMAGE, ns): _LEFT, topics.bag_topic(topics.RIGHT_IMAGE, ns): _RIGHT}
+    read_as, ns = _bag_input(bag_path, stereo_input, namespace)
+    topic = read_as.topics(ns)
+    images = StereoImages(read_as)
+    camera = _read_camera(bag_path, topic, images)
+    sides = {topic[read_as.left_image]: _LEFT, topic[read_as.right_image]: _RIGHT}
 
     def pairs() -> Iterator[tuple[int, NDArray[np.uint8], NDArray[np.uint8]]]:
         sync = StampSynchronizer((_LEFT, _RIGHT), mode="approximate" if slop > 0 else "exact", slop=slop)
         with open_bag(bag_path) as bag:
+            missing = [t for t in sides if t not in bag.topics]
+            if missing:
+                raise BagError(f"bag {bag_path} has no {', '.join(missing)}: the odometry needs both images")
             for message in bag.messages(sides):
                 header = message.msg.header.stamp
                 stamp_ns = int(header.sec) * _NS_PER_S + int(header.nanosec)
                 for match in sync.push(sides[message.topic], stamp_ns, message.msg).matches:
-                    left, right = (_image(m) for m in match.items)
+                    try:
+                        left, right = images.pixels(match.items[0], _LEFT), images.pixels(match.items[1], _RIGHT)
+                    except ImageError as exc:
+                        raise BagError(f"bag {bag_path}: the pair at {match.stamp_ns} ns: {exc}") from exc
                     yield match.stamp_ns, left, right
-
-    def _image(msg: Any) -> NDArray[np.uint8]:
-        pixels = image_to_numpy(msg)
-        if pixels.dtype != np.uint8:
-            raise BagError(f"bag {bag_path}: image encoding {msg.encoding} is not 8-bit; the odometry needs mono8/rgb8")
-        if msg.encoding in ("bgr8", "bgra8"):
-            pixels = pixels[:, :, 2::-1]
-        elif pixels.ndim == 3:
-            pixels = pixels[:, :, :3]
-        return np.ascontiguousarray(pixels)
 
     return camera, pairs()
 
 
+def bag_reference_poses(
+    bag_path: Path | str,
+    stamps_ns: Sequence[int] | NDArray[np.int64],
+    *,
+    namespace: str | None = None,
+    stereo_input: StereoInput | None = None,
+) -> NDArray[np.float64] | None:
+    """The bag's own poses of the (rectified) left camera at ``stamps_ns``: its pose topic, or TF.
+
+    Returns:
+        (N, 4, 4) poses, or None when one of the stamps has none (the reason is logged).
+
+    Raises:
+        BagError: the pose (or ``/tf``) topic is missing.
+    """
+    read_as, ns = _bag_input(bag_path, stereo_input, namespace)
+    topic = read_as.topics(ns)
+    images = StereoImages(read_as)
+    camera_frame = None
+    if read_as.rectify or read_as.pose_source == "tf":
+        with open_bag(bag_path) as bag:
+            wanted = [topic[topics.LEFT_INFO], topic[topics.RIGHT_INFO]]
+            infos = {m.topic: m.msg for m in itertools.islice(bag.messages(wanted), 0, 64)}
+        if len(infos) == 2:
+            images.camera_from_infos(infos[wanted[0]], infos[wanted[1]])
+            camera_frame = str(infos[wanted[0]].header.frame_id)
+    poses: TopicPoses | TFPoses
+    tf = None
+    if read_as.pose_source == "tf":
+        assert read_as.world_frame is not None
+        tf = TFBuffer(cache_time_s=1e6, capacity=10_000_000)
+        poses = TFPoses(tf, read_as.world_frame, read_as.camera_frame)
+        poses.set_camera(camera_frame or "", images.raw_from_rectified)
+        sources = [topic["tf"], topic["tf_static"]]
+    else:
+        poses = TopicPoses()
+        sources = [topic[topics.POSE]]
+    with open_bag(bag_path) as bag:
+        present = [t for t in sources if t in bag.topics]
+        if not present or sources[0] not in present:
+            raise BagError(f"bag {bag_path} has no {sources[0]}: no reference poses ({read_as.pose_source})")
+        for message in bag.messages(present):
+            if tf is not None:
+                tf.add_message(message.msg, static=message.topic == topic["tf_static"])
+            elif isinstance(poses, TopicPoses):
+                poses.buffer.add_message(message.msg)
+    out = []
+    for stamp in stamps_ns:
+        found = poses.pose_at(int(stamp))
+        if found.pose is None:
+            _LOG.warning("no reference pose at %d ns: %s; the KITTI metrics are skipped", stamp, found.detail)
+            return None
+        out.append(found.pose)
+    return np.stack(out) if out else None
+
+
 def estimate_bag_poses(
-    bag_path: Path | str, *, namespace: str | None = None, params: VOParams | None = None, progress: bool = False
+    bag_path: Path | str,
+    *,
+    namespace: str | None = None,
+    params: VOParams | None = None,
+    progress: bool = False,
+    stereo_input: StereoInput | None = None,
+    slop: float = 0.0,
 ) -> tuple[NDArray[np.int64], NDArray[np.float64], list[FrameQuality]]:
     """Estimate the pose of every synchronised stereo pair of a bag.
 
@@ -255,7 +326,7 @@ def estimate_bag_poses(
         BagError, CalibrationError: see :func:`bag_stereo_frames`.
         OdometryError: no usable frame.
     """
-    camera, pairs = bag_stereo_frames(bag_path, namespace=namespace)
+    camera, pairs = bag_stereo_frames(bag_path, namespace=namespace, stereo_input=stereo_input, slop=slop)
     stamps: list[int] = []
 
     def frames() -> Iterator[tuple[float, NDArray[np.uint8], NDArray[np.uint8]]]:
@@ -326,6 +397,9 @@ def odometry_command(
     step: int = 1,
     progress: bool = True,
     echo: Callable[[str], None] | None = print,
+    stereo_input: StereoInput | None = None,
+    reference_poses: bool = False,
+    slop: float = 0.0,
 ) -> dict[str, Any]:
     """Estimate poses of a sequence folder or a bag, write them and their quality, evaluate against ground truth.
 
@@ -339,6 +413,11 @@ def odometry_command(
         step: first frames every ``step`` frames for the metrics.
         progress: show a progress bar.
         echo: where the summary lines go (None: silent).
+        stereo_input: how a bag is read (remaps, compressed or raw images, rectification, pose source);
+            None: as the bag records it, else the package's layout.
+        reference_poses: evaluate a bag against its own poses (``stereo_input.pose_source``: the pose
+            topic or TF) with the KITTI metrics.
+        slop: a bag's left and right images are paired within this many seconds (0: equal stamps).
 
     Returns:
         The content of the quality JSON: ``input``, ``frames``, ``reliable_frames``,
@@ -353,7 +432,11 @@ def odometry_command(
     started = time.perf_counter()
     ground_truth = None
     if is_bag(input_path):
-        _, poses, qualities = estimate_bag_poses(input_path, namespace=namespace, params=params, progress=progress)
+        stamps, poses, qualities = estimate_bag_poses(
+            input_path, namespace=namespace, params=params, progress=progress, stereo_input=stereo_input, slop=slop
+        )
+        if reference_poses:
+            ground_truth = bag_reference_poses(input_path, stamps, namespace=namespace, stereo_input=stereo_input)
     else:
         seq = open_sequence(input_path, sequence=sequence)
         poses, qualities = estimate_poses(seq.camera, _sequence_frames(seq, range(len(seq)), progress), params=params)
