@@ -18,6 +18,33 @@ must be the left optical frame), chosen by ``pose_source``. With
 ``disparity`` (stereo_msgs/DisparityImage) message of an external stereo
 algorithm is one view.
 
+**A robot's own topics** (the same choices as the offline commands,
+:class:`~selfcontra_ros.bags.stereo_input.StereoInput`):
+
+* ``image_transport: compressed`` subscribes to ``<image topic>/compressed``
+  (sensor_msgs/CompressedImage, JPEG or PNG, ``format`` as image_transport
+  writes it), decoded by :mod:`selfcontra_ros.bags.compressed`. A remap of
+  the base name (``-r left/image_raw:=cam_left/image_raw``) moves the
+  ``/compressed`` topic with it, as image_transport's subscribers do.
+* ``rectify: true`` subscribes to ``left/image_raw`` and ``right/image_raw``
+  and rectifies them with their (distorted) camera infos
+  (:class:`~selfcontra_ros.rectification.Rectifier`: ``plumb_bob`` or
+  ``rational_polynomial`` D, K, R, P; the OpenCV maps are built once per
+  calibration and rebuilt when it changes); the rectified camera (from the
+  two P) is the one labelled, and the outputs keep the left image's frame id.
+* ``pose_source: tf`` takes the pose of ``camera_frame`` (default: the left
+  camera_info's ``header.frame_id``) in ``world_frame`` from TF at the left
+  image's stamp, times the rectification rotation ``R_left^T`` with
+  ``rectify`` (the pose of the rectified view). It needs ``tf2_ros`` (a
+  ``Buffer`` with a ``TransformListener`` on ``/tf`` and ``/tf_static``,
+  adapted by :class:`Tf2Transforms`); where it is missing, as in the PyPI
+  wheels, the node stops at start with a message naming the alternatives:
+  ``pose_source: pose`` fed by the player's TF conversion (``player -p
+  pose_source:=tf``, which composes a bag's TF itself), ``pose``/``odom``
+  from the robot's own pose topic, or ``odometry``. The decision when a frame
+  has its pose is :func:`tf_pose_decision`; a frame waits while TF may still
+  reach its stamp, like a frame waiting for a pose topic.
+
 **Synchronisation.** Images and camera infos are grouped by header stamp
 (left image first; ``sync: exact`` needs equal stamps, ``approximate`` accepts
 ``slop`` seconds) by :class:`~selfcontra_ros.bags.sync.StampSynchronizer`, as
@@ -85,7 +112,13 @@ non-rigid pose), ``pose_backwards`` / ``stamp_backwards`` (stamps not
 increasing), ``unsynced`` (no partner within the slop, or a queue overflow,
 e.g. a topic that stopped), ``pose_none_yet`` / ``pose_before_buffer`` /
 ``pose_after_buffer`` / ``pose_gap`` (no pose within ``max_pose_gap`` of the
-image stamp), ``pose_wait_overflow``, ``label_queue_full``, ``session_reset``
+image stamp), ``bad_compressed_image`` (a CompressedImage that does not
+decode or has an unsupported ``format``), the TF reasons of
+:class:`~selfcontra_ros.errors.TransformError` with ``pose_source: tf``
+(``tf_unknown_frame``, ``tf_not_connected``, ``tf_none_yet``,
+``tf_before_buffer``, ``tf_after_buffer``, ``tf_gap``, ``tf_lookup_failed``,
+``no_camera_frame``; the warning names the missing link),
+``pose_wait_overflow``, ``label_queue_full``, ``session_reset``
 (views of the old session dropped at a camera change or a time jump),
 ``bad_disparity`` and
 ``error`` (anything unexpected, logged with the reason; the node carries on).
@@ -103,8 +136,12 @@ poses and the session the same way (counted in ``time_jumps``).
     the core's parameters (:class:`~selfcontra_ros.matching.base.MatcherParams`,
     :class:`~selfcontra_ros.labeler.LabelerParams`), defaults and meaning as in
     ``config/labeler.yaml``; ``--params-file`` sets them.
-``pose_source`` (``pose``), ``sync`` (``exact``), ``slop`` (0.0 s, 0..1)
+``pose_source`` (``pose``: ``pose``, ``odom``, ``odometry`` or ``tf``), ``sync`` (``exact``), ``slop`` (0.0 s, 0..1)
     see above; ``slop`` needs ``sync: approximate``.
+``world_frame`` (``""``), ``camera_frame`` (``""``: the left camera_info's frame id)
+    the TF frames of ``pose_source: tf`` (``world_frame`` is required there, e.g. ``odom`` or ``map``).
+``image_transport`` (``raw``: sensor_msgs/Image, or ``compressed``), ``rectify`` (false)
+    see "A robot's own topics" above.
 ``queue_size`` (10, 1..1000)
     messages per synchronised topic, frames waiting for their pose, and the
     subscriptions' history depth.
@@ -150,7 +187,7 @@ import sys
 import threading
 import time
 from dataclasses import dataclass
-from types import FrameType
+from types import FrameType, SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -167,7 +204,9 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.signals import SignalHandlerOptions
 
 from selfcontra_ros.bags import topics
-from selfcontra_ros.bags.sync import SYNC_MODES, Match, PoseBuffer, StampSynchronizer
+from selfcontra_ros.bags.stereo_input import IMAGE_TRANSPORTS, ImageError, PoseAt, StereoImages, StereoInput, TFPoses
+from selfcontra_ros.bags.sync import SYNC_MODES, Match, PoseBuffer, StampSynchronizer, matrix_from_pose
+from selfcontra_ros.bags.tf import TransformSource, normalize_frame
 from selfcontra_ros.confidence.forest import ForestModel
 from selfcontra_ros.confidence.online import ConfidenceFrame, ConfidenceParams, OnlineConfidence, filter_depth
 from selfcontra_ros.config import (
@@ -177,26 +216,34 @@ from selfcontra_ros.config import (
     params_to_dict,
     to_ros_parameters,
 )
-from selfcontra_ros.errors import CalibrationError, ConversionError, PoseError, SelfContraError
+from selfcontra_ros.errors import CalibrationError, ConversionError, PoseError, SelfContraError, TransformError
 from selfcontra_ros.geometry import StereoCamera
 from selfcontra_ros.labeler import LabelerParams, LabelResult
 from selfcontra_ros.labels import colorize_labels
 from selfcontra_ros.matching.base import MatcherParams
 from selfcontra_ros.odometry.run import OnlineOdometry
+from selfcontra_ros.rectification import calibration_key
 from selfcontra_ros.ros.conversions import (
     disparity_from_message,
     disparity_image,
-    image_to_numpy,
     nanoseconds_to_stamp,
     numpy_to_image,
     stamp_to_nanoseconds,
-    stereo_camera_from_camera_infos,
 )
 from selfcontra_ros.ros.environment import prepare_ros_environment
 from selfcontra_ros.session import LabelingSession
 from selfcontra_ros.threads import apply_thread_limit, available_cores, limit_threads
 
-__all__ = ["DROP_REASONS", "LabelerConfigError", "LabelerNode", "ViewKey", "main"]
+__all__ = [
+    "DROP_REASONS",
+    "TF_WAIT_REASONS",
+    "LabelerConfigError",
+    "LabelerNode",
+    "Tf2Transforms",
+    "ViewKey",
+    "main",
+    "tf_pose_decision",
+]
 
 NODE_NAME = "labeler"
 #: Relative topic of the odometry pose source.
@@ -207,7 +254,7 @@ DEBUG_SUPPORT = "debug/support"
 DEBUG_VOTE_SUM = "debug/vote_sum"
 DEBUG_UNCERTAINTY = "debug/uncertainty"
 
-POSE_SOURCES = ("pose", "odom", "odometry")
+POSE_SOURCES = ("pose", "odom", "odometry", "tf")
 INPUT_QOS = ("sensor_data", "reliable")
 
 #: Every reason a message or view can be dropped for (keys of the ``drops`` counters in ``~/stats``).
@@ -225,6 +272,15 @@ DROP_REASONS = (
     "pose_before_buffer",
     "pose_after_buffer",
     "pose_gap",
+    "bad_compressed_image",
+    "tf_unknown_frame",
+    "tf_not_connected",
+    "tf_none_yet",
+    "tf_before_buffer",
+    "tf_after_buffer",
+    "tf_gap",
+    "tf_lookup_failed",
+    "no_camera_frame",
     "pose_wait_overflow",
     "label_queue_full",
     "confidence_lrd_fallback",
@@ -233,8 +289,15 @@ DROP_REASONS = (
     "error",
 )
 
-# Image encodings the matcher takes; bgr8 is flipped to RGB (OpenCV's grey conversion weights the channels).
-_IMAGE_ENCODINGS = ("mono8", "rgb8", "bgr8")
+#: TF failures that more transforms may still cure (the frame waits for them): no data up to the stamp yet,
+#: or frames / links not heard of yet (a static transform published late). Others drop the frame at once.
+TF_WAIT_REASONS = frozenset(
+    {"tf_none_yet", "tf_after_buffer", "tf_unknown_frame", "tf_not_connected", "no_camera_frame"}
+)
+#: Image-decoding reasons of :class:`~selfcontra_ros.bags.stereo_input.ImageError` -> the node's drop reason.
+_IMAGE_REASONS = {"bad_encoding": "bad_image", "no_camera_info": "bad_camera_info"}
+# How often frames waiting for TF are retried (tf2_ros fills its buffer without telling the node), seconds.
+_TF_RETRY_PERIOD_S = 0.05
 # At most one warning per drop reason in this many seconds.
 _WARN_PERIOD_S = 5.0
 # Poses kept: 10 s of a 100 Hz odometry.
@@ -319,22 +382,89 @@ _CORE_FLOAT_RANGES: dict[str, list[FloatingPointRange]] = {
 _SECTION_CLASSES = {"matcher": "MatcherParams", "labeler": "LabelerParams", "confidence": "ConfidenceParams"}
 
 
-def _pixels(msg: Any, side: str) -> NDArray[np.uint8]:
-    """The pixels of a rectified image message as the matcher takes them: HxW grey or HxWx3 RGB uint8.
-
-    Raises:
-        ConversionError: the encoding is not mono8/rgb8/bgr8, or the message is malformed.
-    """
-    encoding = str(msg.encoding)
-    if encoding not in _IMAGE_ENCODINGS:
-        raise ConversionError(f"{side} image encoding is {encoding!r}; expected one of {', '.join(_IMAGE_ENCODINGS)}")
-    pixels = image_to_numpy(msg)
-    return pixels[:, :, ::-1].copy() if encoding == "bgr8" else pixels
-
-
 def _info_key(msg: Any) -> tuple[Any, ...]:
-    """What identifies a camera info's calibration (a change of it means another camera)."""
+    """What identifies a rectified camera info's calibration (a change of it means another camera)."""
     return (int(msg.width), int(msg.height), tuple(float(v) for v in msg.p))
+
+
+def tf_pose_decision(poses: TFPoses, stamp_ns: int, *, waited_ns: int, max_wait_ns: int) -> PoseAt | None:
+    """The TF pose of a frame waiting for it: the pose, the reason it has none, or None while it should wait.
+
+    The frame waits while it is *patient* (at most ``max_wait_ns`` of newer
+    image time arrived since it, ``waited_ns``) and TF has not reached its
+    stamp: the source's newest common stamp is older (a
+    :class:`~selfcontra_ros.bags.tf.TFBuffer` tells it), or the lookup fails
+    for a reason of :data:`TF_WAIT_REASONS`. Once impatient, the lookup's
+    answer is final (the source may extrapolate a little, as it allows).
+
+    Args:
+        poses: the TF pose source (world frame, camera frame, rectification rotation).
+        stamp_ns: the frame's stamp, nanoseconds.
+        waited_ns: how much newer the newest frame is, nanoseconds.
+        max_wait_ns: the patience, nanoseconds (``max_pose_gap``).
+    """
+    patient = waited_ns <= max_wait_ns
+    newest = poses.newest_ns
+    if patient and newest is not None and newest < stamp_ns:
+        return None
+    found = poses.pose_at(stamp_ns)
+    if found.pose is None and patient and found.reason in TF_WAIT_REASONS:
+        return None
+    return found
+
+
+class Tf2Transforms:
+    """:class:`~selfcontra_ros.bags.tf.TransformSource` over a tf2_ros ``Buffer`` (filled by a ``TransformListener``).
+
+    tf2_ros's exceptions become :class:`~selfcontra_ros.errors.TransformError`
+    with the reasons of :class:`~selfcontra_ros.bags.tf.TFBuffer`:
+    ``LookupException`` -> ``tf_unknown_frame``, ``ConnectivityException`` ->
+    ``tf_not_connected``, ``ExtrapolationException`` -> ``tf_before_buffer``
+    ("into the past") or ``tf_after_buffer`` (otherwise: the data may still
+    come), anything else of tf2 -> ``tf_lookup_failed``.
+
+    Args:
+        buffer: a ``tf2_ros.Buffer`` (anything with its ``lookup_transform(target, source, time)``).
+        tf2: the ``tf2_ros`` module (or any object with its exception classes).
+    """
+
+    def __init__(self, buffer: Any, tf2: Any) -> None:
+        self.buffer = buffer
+        self._tf2 = tf2
+
+    def _reason(self, exc: BaseException) -> str:
+        tf2 = self._tf2
+        if isinstance(exc, tf2.LookupException):
+            return "tf_unknown_frame"
+        if isinstance(exc, tf2.ConnectivityException):
+            return "tf_not_connected"
+        if isinstance(exc, tf2.ExtrapolationException):
+            return "tf_before_buffer" if "past" in str(exc).lower() else "tf_after_buffer"
+        return "tf_lookup_failed"
+
+    def lookup(self, target_frame: str, source_frame: str, stamp_ns: int) -> NDArray[np.float64]:
+        """4x4 ``T_target_source`` (metres) at ``stamp_ns`` from the tf2 buffer (no waiting: timeout 0).
+
+        Raises:
+            TransformError: tf2 has no such transform at the stamp, or gave a non-rigid one.
+        """
+        from rclpy.time import Time
+
+        target, source = normalize_frame(target_frame), normalize_frame(source_frame)
+        try:
+            msg = self.buffer.lookup_transform(target, source, Time(nanoseconds=int(stamp_ns)))
+        except self._tf2.TransformException as exc:
+            raise TransformError(
+                f"tf2: no transform from {target} to {source} at {int(stamp_ns) / 1e9:.3f} s: {exc}", self._reason(exc)
+            ) from exc
+        transform = msg.transform
+        try:
+            return matrix_from_pose(
+                SimpleNamespace(position=transform.translation, orientation=transform.rotation),
+                what=f"tf2 transform {target} -> {source}",
+            )
+        except PoseError as exc:
+            raise TransformError(str(exc), "tf_lookup_failed") from exc
 
 
 class LabelerNode(Node):
@@ -347,13 +477,22 @@ class LabelerNode(Node):
         counts: progress counters (frames matched, views labelled, ...).
     """
 
-    def __init__(self, **kwargs: Any) -> None:
+    def __init__(self, *, transform_source: TransformSource | None = None, **kwargs: Any) -> None:
         """Declare and read the parameters, create publishers, subscriptions, timers and the labeling worker.
 
+        Args:
+            transform_source: with ``pose_source: tf``, the TF to read instead of a tf2_ros
+                ``Buffer`` + ``TransformListener`` (e.g. a :class:`~selfcontra_ros.bags.tf.TFBuffer`
+                that its owner fills: tests, or a program embedding the node).
+            kwargs: passed to ``rclpy.node.Node`` (``context``, ``parameter_overrides``, ...).
+
         Raises:
-            LabelerConfigError: a parameter is invalid.
+            LabelerConfigError: a parameter is invalid, or ``pose_source: tf`` without tf2_ros
+                and without ``transform_source``.
         """
         super().__init__(NODE_NAME, **kwargs)
+        self._transform_source = transform_source
+        self._tf_listener: Any = None
         self._lock = threading.Lock()
         self.drops: dict[str, int] = dict.fromkeys(DROP_REASONS, 0)
         self.counts: dict[str, int] = {
@@ -408,8 +547,35 @@ class LabelerNode(Node):
             "pose",
             _descriptor(
                 "pose topic: 'pose' (geometry_msgs/PoseStamped) or 'odom' (nav_msgs/Odometry), T_world_left; "
-                "'odometry': no pose topic, the package's stereo visual odometry estimates the poses",
-                additional_constraints="pose, odom or odometry",
+                "'odometry': no pose topic, the package's stereo visual odometry estimates the poses; "
+                "'tf': camera_frame in world_frame from /tf and /tf_static (needs tf2_ros)",
+                additional_constraints="pose, odom, odometry or tf",
+            ),
+        )
+        self.declare_parameter(
+            "world_frame",
+            "",
+            _descriptor("pose_source tf: the fixed frame of the poses, e.g. odom or map (required there)"),
+        )
+        self.declare_parameter(
+            "camera_frame",
+            "",
+            _descriptor("pose_source tf: the left camera's TF frame; empty: the left camera_info's header.frame_id"),
+        )
+        self.declare_parameter(
+            "image_transport",
+            "raw",
+            _descriptor(
+                "raw: sensor_msgs/Image; compressed: sensor_msgs/CompressedImage on <image topic>/compressed",
+                additional_constraints="raw or compressed",
+            ),
+        )
+        self.declare_parameter(
+            "rectify",
+            False,
+            _descriptor(
+                "subscribe to left/right image_raw and rectify them with their (distorted) camera_info "
+                "(plumb_bob or rational_polynomial D, K, R, P)"
             ),
         )
         self.declare_parameter(
@@ -512,6 +678,10 @@ class LabelerNode(Node):
             raise LabelerConfigError(str(exc)) from exc
         p = self.get_parameter
         self._pose_source = str(p("pose_source").value)
+        self._world_frame = normalize_frame(str(p("world_frame").value))
+        self._camera_frame = normalize_frame(str(p("camera_frame").value))
+        self._image_transport = str(p("image_transport").value)
+        self._rectify = bool(p("rectify").value)
         self._sync_mode = str(p("sync").value)
         self._slop = float(p("slop").value)
         self._queue_size = int(p("queue_size").value)
@@ -534,9 +704,19 @@ class LabelerNode(Node):
             ("pose_source", self._pose_source, POSE_SOURCES),
             ("sync", self._sync_mode, SYNC_MODES),
             ("input_qos", self._input_qos, INPUT_QOS),
+            ("image_transport", self._image_transport, IMAGE_TRANSPORTS),
         ):
             if value not in choices:
                 raise LabelerConfigError(f"parameter {name!r} is {value!r}; expected one of {', '.join(choices)}")
+        if self._pose_source == "tf" and not self._world_frame:
+            raise LabelerConfigError(
+                "parameter 'world_frame' is required with pose_source 'tf': the fixed frame, e.g. odom or map"
+            )
+        if self._pose_source != "tf" and (self._world_frame or self._camera_frame):
+            raise LabelerConfigError(
+                f"parameters 'world_frame' and 'camera_frame' apply to pose_source 'tf' only "
+                f"(pose_source is {self._pose_source!r})"
+            )
         if self._sync_mode == "exact" and self._slop != 0.0:
             raise LabelerConfigError(f"parameter 'slop' is {self._slop:g} s with sync 'exact'; use sync:=approximate")
         self._external = self.matcher_params.algorithm == "external"
@@ -551,7 +731,7 @@ class LabelerNode(Node):
     def _create_io(self) -> None:
         from geometry_msgs.msg import PoseStamped
         from nav_msgs.msg import Odometry
-        from sensor_msgs.msg import CameraInfo, Image
+        from sensor_msgs.msg import CameraInfo, CompressedImage, Image
         from std_msgs.msg import String
         from stereo_msgs.msg import DisparityImage
 
@@ -602,12 +782,25 @@ class LabelerNode(Node):
         self._session: LabelingSession | None = None
         self._odometry: OnlineOdometry | None = None  # pose_source "odometry": one per session
         self._label_queue: queue.Queue[_View | None] = queue.Queue(maxsize=self._label_queue_size)
+        stereo_input = StereoInput(image_transport=self._image_transport, rectify=self._rectify)
+        self._images = StereoImages(stereo_input)
+        self._tf_poses: TFPoses | None = None
+        if self._pose_source == "tf":
+            source = self._transform_source if self._transform_source is not None else self._tf2_source()
+            self._tf_poses = TFPoses(source, self._world_frame, self._camera_frame or None)
+            self._tf_timer = self.create_timer(_TF_RETRY_PERIOD_S, self._retry_tf)
 
         if self._external:
             self.create_subscription(DisparityImage, topics.DISPARITY, self._callback("disparity"), qos_in)
+        elif self._image_transport == "compressed":
+            for key, name in (("left", stereo_input.left_image), ("right", stereo_input.right_image)):
+                # The base name resolved (and remapped) first, as image_transport does: -r left/image_raw:=X
+                # moves the subscription to X/compressed.
+                topic = self.resolve_topic_name(name) + topics.COMPRESSED_SUFFIX
+                self.create_subscription(CompressedImage, topic, self._callback(key), qos_in)
         else:
-            self.create_subscription(Image, topics.LEFT_IMAGE, self._callback("left"), qos_in)
-            self.create_subscription(Image, topics.RIGHT_IMAGE, self._callback("right"), qos_in)
+            self.create_subscription(Image, stereo_input.left_image, self._callback("left"), qos_in)
+            self.create_subscription(Image, stereo_input.right_image, self._callback("right"), qos_in)
         self.create_subscription(CameraInfo, topics.LEFT_INFO, self._callback("left_info"), qos_in)
         self.create_subscription(CameraInfo, topics.RIGHT_INFO, self._callback("right_info"), qos_in)
         if self._pose_source == "pose":
@@ -619,10 +812,49 @@ class LabelerNode(Node):
         self._last_logged_stats: str | None = None
         self.get_logger().info(
             f"labeling {'external disparities' if self._external else 'stereo images'} "
-            f"({self.matcher_params.algorithm}), pose from '{self._pose_source}', sync {self._sync_mode}"
+            f"({self.matcher_params.algorithm}"
+            + ("" if self._external else f", {self._image_transport}{', rectified here' if self._rectify else ''}")
+            + f"), pose from '{self._pose_source}'"
+            + (
+                f" ({self._camera_frame or 'the left camera_info frame'} in {self._world_frame})"
+                if self._tf_poses
+                else ""
+            )
+            + f", sync {self._sync_mode}"
             + (f" (slop {self._slop:g} s)" if self._sync_mode == "approximate" else "")
             + f", window {self.labeler_params.window_size}, delay {self.labeler_params.label_delay}"
         )
+
+    def _tf2_source(self) -> Tf2Transforms:
+        """A tf2_ros ``Buffer`` filled by a ``TransformListener`` on this node (``/tf``, ``/tf_static``).
+
+        Raises:
+            LabelerConfigError: tf2_ros is not installed (naming the alternatives).
+        """
+        try:
+            import tf2_ros
+        except ImportError as exc:
+            raise LabelerConfigError(
+                f"pose_source 'tf' needs tf2_ros, ROS 2's Python TF library, which this installation lacks ({exc}); "
+                "the PyPI ROS wheels have none. Alternatives: run the node from a ROS 2 install that has tf2_ros "
+                "(ros-<distro>-tf2-ros); or give the labeler a pose topic (pose_source pose or odom), e.g. from "
+                "the player, which composes a bag's /tf and /tf_static itself (player -p pose_source:=tf "
+                "-p world_frame:=odom publishes the left camera's PoseStamped on 'pose'); or let the package "
+                "estimate the poses (pose_source odometry); offline, 'selfcontra label BAG --pose-source tf' "
+                "needs no ROS at all"
+            ) from exc
+        buffer = tf2_ros.Buffer(node=self)
+        self._tf_listener = tf2_ros.TransformListener(buffer, self)
+        return Tf2Transforms(buffer, tf2_ros)
+
+    def _retry_tf(self) -> None:
+        """Timer: frames waiting for TF get another lookup (tf2_ros fills its buffer without telling the node)."""
+        if not self._awaiting_pose:
+            return
+        try:
+            self._release_views()
+        except Exception as exc:  # never die on input
+            self._drop("error", f"TF pose lookup: unexpected {type(exc).__name__}: {exc}")
 
     # ------------------------------------------------------------------ counters and logs
 
@@ -755,7 +987,7 @@ class LabelerNode(Node):
                 disparity, depth = session.match(left, right, external_disparity=disparity_in)
                 frame = None
             else:
-                left, right = _pixels(items["left"], "left"), _pixels(items["right"], "right")
+                left, right = self._images.pixels(items["left"], "left"), self._images.pixels(items["right"], "right")
                 for side, image in (("left", left), ("right", right)):
                     if image.shape[:2] != (camera.height, camera.width):
                         self._drop(
@@ -771,6 +1003,9 @@ class LabelerNode(Node):
                 disparity, depth, frame = matched.disparity, matched.depth, matched.frame
                 if self._odometry is not None and not self._odometry_pose(match.stamp_ns, left, right):
                     return
+        except ImageError as exc:
+            self._drop(_IMAGE_REASONS.get(exc.reason, exc.reason), str(exc))
+            return
         except ConversionError as exc:
             self._drop("bad_disparity" if self._external else "bad_image", str(exc))
             return
@@ -878,16 +1113,25 @@ class LabelerNode(Node):
         return True
 
     def _session_for(self, left_info: Any, right_info: Any) -> LabelingSession | None:
-        """The session of the camera the infos describe; a new one (logged) when the calibration changed."""
-        key = (_info_key(left_info), _info_key(right_info))
+        """The session of the camera the infos describe; a new one (logged) when the calibration changed.
+
+        With ``rectify`` the whole calibration (D, K, R, P) is the key: a change rebuilds the
+        rectification maps, and starts a new session only if the rectified camera changed too.
+        """
+        if self._rectify:
+            key = (calibration_key(left_info), calibration_key(right_info))
+        else:
+            key = (_info_key(left_info), _info_key(right_info))
         if key == self._camera_key and self._session is not None:
             return self._session
         try:
-            camera = stereo_camera_from_camera_infos(left_info, right_info)
+            camera = self._images.camera_from_infos(left_info, right_info)
         except CalibrationError as exc:
             self._drop("bad_camera_info", str(exc))
             return None
         self._camera_key = key
+        if self._tf_poses is not None:
+            self._tf_poses.set_camera(str(left_info.header.frame_id), self._images.raw_from_rectified)
         if self._session is not None and camera == self._camera:
             return self._session  # same calibration, e.g. only the stamps or the K of the infos differ
         session = LabelingSession(camera, self.matcher_params, self.labeler_params, self._confidence)
@@ -936,25 +1180,37 @@ class LabelerNode(Node):
         (extrapolating at most ``max_pose_extrapolation`` s) and dropped when
         that fails.
         """
+        max_wait_ns = round(self._max_pose_gap * 1e9)
         while self._awaiting_pose:
             view = self._awaiting_pose[0]
             stamp = view.key.stamp_ns
-            newest_pose = self._poses.newest_ns
-            if newest_pose is None or newest_pose < stamp:
-                waited_ns = (self._newest_frame_ns or stamp) - stamp
-                if waited_ns <= round(self._max_pose_gap * 1e9):
-                    return  # the pose may still come
-                extrapolation = self._max_extrapolation
+            waited_ns = (self._newest_frame_ns or stamp) - stamp
+            if self._tf_poses is not None:
+                found = tf_pose_decision(self._tf_poses, stamp, waited_ns=waited_ns, max_wait_ns=max_wait_ns)
+                if found is None:
+                    return  # TF may still reach the stamp
+                self._awaiting_pose.pop(0)
+                if found.pose is None:
+                    self._drop(found.reason or "tf_lookup_failed", f"frame at {stamp} ns: {found.detail}")
+                    continue
+                view.pose = found.pose
+                self._tf_poses.discard_before(stamp)
             else:
-                extrapolation = 0.0
-            lookup = self._poses.lookup(stamp, max_gap_s=self._max_pose_gap, max_extrapolation_s=extrapolation)
-            self._awaiting_pose.pop(0)
-            if lookup.pose is None:
-                reason = lookup.reason.value if lookup.reason is not None else "pose_none_yet"
-                self._drop(reason, f"no pose within {self._max_pose_gap:g} s of the frame at {stamp} ns")
-                continue
-            view.pose = lookup.pose
-            self._poses.discard_before(stamp)
+                newest_pose = self._poses.newest_ns
+                if newest_pose is None or newest_pose < stamp:
+                    if waited_ns <= max_wait_ns:
+                        return  # the pose may still come
+                    extrapolation = self._max_extrapolation
+                else:
+                    extrapolation = 0.0
+                lookup = self._poses.lookup(stamp, max_gap_s=self._max_pose_gap, max_extrapolation_s=extrapolation)
+                self._awaiting_pose.pop(0)
+                if lookup.pose is None:
+                    reason = lookup.reason.value if lookup.reason is not None else "pose_none_yet"
+                    self._drop(reason, f"no pose within {self._max_pose_gap:g} s of the frame at {stamp} ns")
+                    continue
+                view.pose = lookup.pose
+                self._poses.discard_before(stamp)
             try:
                 self._label_queue.put_nowait(view)
             except queue.Full:

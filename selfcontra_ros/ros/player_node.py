@@ -37,6 +37,44 @@ Parameters (all read once at start):
     publisher QoS (history keep-last, volatile). ``reliable`` is the default
     because a reliable publisher serves both reliable and best-effort
     subscribers, while a best-effort one serves only best-effort ones.
+``pose_source`` (string, ``none``: publish the bag as recorded; ``tf``)
+    turn the bag's ``/tf`` and ``/tf_static`` into the pose of the left camera
+    (see below).
+``world_frame`` (string), ``camera_frame`` (string, ``""``: the left camera_info's frame id)
+    the TF frames of ``pose_source: tf`` (``world_frame`` required there, e.g. ``odom``).
+``stereo_namespace`` (string, ``""``: found from the left image topic), ``remaps`` (string array),
+``image_transport`` (``raw`` or ``compressed``), ``rectify`` (bool, false)
+    where the bag's left image, left camera_info and TF topics are, in the
+    terms of the offline commands (``selfcontra label BAG --namespace NS
+    --remap FROM:=TO --image-transport ... --rectify``,
+    :class:`~selfcontra_ros.bags.stereo_input.StereoInput`): ``remaps`` holds
+    the same ``FROM:=TO`` rules, e.g. ``-p remaps:='["left/image_raw:=cam_left/image_raw"]'``
+    (each rule in double quotes) or a params file; used with ``pose_source: tf`` only.
+
+**TF to pose** (``pose_source: tf``). A robot's bag has its poses in TF
+(``odom -> base_link`` on ``/tf``, ``base_link -> <camera>_optical_frame`` on
+``/tf_static``), as ``tf2_msgs/TFMessage``, which the PyPI ROS wheels cannot
+publish (the player skips such topics), and a labeler without ``tf2_ros``
+cannot read. The player composes them itself instead
+(:class:`BagTFPoses`: the package's :class:`~selfcontra_ros.bags.tf.TFBuffer`,
+interpolated at the stamp) and publishes ``geometry_msgs/PoseStamped`` of the
+left camera (``camera_frame`` in ``world_frame``, header frame id
+``world_frame``) at each left image's header stamp, on the labeler's pose
+topic: the relative ``pose`` resolved in the stereo namespace like the bag's
+topics (``/sensors/stereo/pose`` for ``/sensors/stereo/cam_left/...``,
+remappable with ``remaps`` ``pose:=...`` or the player's own ``-r``). With
+``rectify`` the rotation ``R`` of the left camera_info is applied
+(``T_world_camera @ R^T``, as
+:attr:`~selfcontra_ros.rectification.Rectifier.raw_from_rectified`), so the
+pose is that of the rectified left view, the one a labeler with ``rectify:
+true`` labels: that labeler then runs with ``pose_source: pose``. A pose goes
+out as soon as TF covers its stamp (the next ``/tf`` message after it), or,
+when TF stops, once the bag is ``0.5`` s past the stamp (extrapolating at
+most ``0.05`` s), as the offline bag labeler decides; a stamp TF cannot
+answer is counted in :attr:`PlayerNode.pose_misses` by the reason of
+:class:`~selfcontra_ros.errors.TransformError` and logged (naming the missing
+link). On a robot whose ROS install has ``tf2_ros`` none of this is needed:
+play ``/tf`` as recorded and run the labeler with ``pose_source: tf``.
 
 Without ``loop`` the node logs a summary after the last message, waits (at
 most 1 s) until reliable subscribers acknowledged everything, and the process
@@ -49,27 +87,35 @@ from __future__ import annotations
 import importlib
 import sys
 import time
+from collections import Counter
 from collections.abc import Iterator
 from typing import Any
 
+import numpy as np
 import rclpy
+from numpy.typing import NDArray
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.clock import Clock, ClockType
 from rclpy.duration import Duration
-from rclpy.exceptions import ParameterException
+from rclpy.exceptions import ParameterException, ParameterUninitializedException
 from rclpy.executors import ExternalShutdownException
 from rclpy.logging import get_logger
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.publisher import Publisher  # unparameterised: generic (Publisher[MsgT]) in Kilted, not in Jazzy
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
 
 from selfcontra_ros.bags import topics
 from selfcontra_ros.bags.reader import Bag, RawMessage, open_bag
+from selfcontra_ros.bags.stereo_input import IMAGE_TRANSPORTS, PoseAt, StereoInput, TFPoses
+from selfcontra_ros.bags.tf import TFBuffer
 from selfcontra_ros.errors import SelfContraError
+from selfcontra_ros.geometry import quaternion_from_rotation
+from selfcontra_ros.ros.conversions import nanoseconds_to_stamp, stamp_to_nanoseconds
 from selfcontra_ros.ros.environment import prepare_ros_environment
 
-__all__ = ["PlayerConfigError", "PlayerNode", "main"]
+__all__ = ["PLAYER_POSE_SOURCES", "BagTFPoses", "PlayerConfigError", "PlayerNode", "main"]
 
 NODE_NAME = "player"
 _NS_PER_S = 1_000_000_000
@@ -84,6 +130,11 @@ _ACK_TIMEOUT_S = 1.0
 _DEFAULT_PERIOD_NS = 100_000_000
 # Timers need a positive period; a message due sooner than this goes out at once.
 _MIN_PERIOD_NS = 100_000
+#: Accepted ``pose_source`` values: publish as recorded, or add the left camera's pose composed from TF.
+PLAYER_POSE_SOURCES = ("none", "tf")
+# TF limits of the pose conversion, seconds: those of the offline bag labeler (max_pose_gap, max_pose_extrapolation).
+_TF_MAX_GAP_S = 0.5
+_TF_MAX_EXTRAPOLATION_S = 0.05
 
 
 class PlayerConfigError(SelfContraError):
@@ -103,12 +154,111 @@ def _descriptor(description: str, **kwargs: Any) -> ParameterDescriptor:
     return ParameterDescriptor(description=description, **kwargs)
 
 
+class BagTFPoses:
+    """The left camera's pose at each left image of a bag, composed from the bag's ``/tf`` and ``/tf_static``.
+
+    Plain (no ROS): the player feeds it the messages of the topics in
+    :attr:`topics` as it plays them (deserialised) and publishes what
+    :meth:`add` returns. A left image's stamp waits until the TF chain
+    ``world_frame -> camera_frame`` reaches it (``TFBuffer.newest_ns``), or the
+    bag is ``max_gap_s`` past it (then the lookup may extrapolate
+    ``max_extrapolation_s``), as :func:`~selfcontra_ros.bags.label_bag.label_bag`
+    decides; :meth:`finish` decides every stamp still waiting at the end of a pass.
+
+    Args:
+        stereo_input: where the left image, its camera_info and TF are (``pose_source`` tf).
+        topic_map: :meth:`StereoInput.topics` of the bag's stereo namespace.
+        max_gap_s: TF samples interpolated at most this far apart, and the wait for TF, seconds.
+        max_extrapolation_s: how far past a link's newest transform a given-up stamp may lie, seconds.
+
+    Attributes:
+        topics: bag topics read: left image, left camera_info, ``/tf``, ``/tf_static``.
+        misses: reason -> stamps without a pose (:class:`~selfcontra_ros.errors.TransformError` reasons).
+    """
+
+    def __init__(
+        self,
+        stereo_input: StereoInput,
+        topic_map: dict[str, str],
+        *,
+        max_gap_s: float = _TF_MAX_GAP_S,
+        max_extrapolation_s: float = _TF_MAX_EXTRAPOLATION_S,
+    ) -> None:
+        if stereo_input.pose_source != "tf" or stereo_input.world_frame is None:
+            raise PlayerConfigError("BagTFPoses needs a stereo input with pose_source 'tf' and a world_frame")
+        self.input = stereo_input
+        self.left_image = topic_map[stereo_input.left_image]
+        self.left_info = topic_map[topics.LEFT_INFO]
+        self.tf_topic, self.tf_static_topic = topic_map["tf"], topic_map["tf_static"]
+        self.topics = (self.left_image, self.left_info, self.tf_topic, self.tf_static_topic)
+        self.max_gap_ns = round(max_gap_s * _NS_PER_S)
+        self.max_gap_s, self.max_extrapolation_s = max_gap_s, max_extrapolation_s
+        self.misses: Counter[str] = Counter()
+        self.reset()
+
+    def reset(self) -> None:
+        """Start a pass over the bag: empty TF buffer, no camera frame, nothing waiting (a loop jumps back in time)."""
+        self.tf = TFBuffer(max_gap_s=self.max_gap_s, max_extrapolation_s=self.max_extrapolation_s)
+        assert self.input.world_frame is not None
+        self.poses = TFPoses(self.tf, self.input.world_frame, self.input.camera_frame)
+        self._waiting: list[int] = []
+
+    def add(self, topic: str, log_ns: int, msg: Any) -> list[tuple[int, PoseAt]]:
+        """Take one message of :attr:`topics`; return ``(stamp, pose or miss)`` of the left images now decided.
+
+        Returns:
+            Oldest first; a miss carries the TF error's reason and message.
+        """
+        if topic in (self.tf_topic, self.tf_static_topic):
+            self.tf.add_message(msg, static=topic == self.tf_static_topic)  # refusals are counted in tf.refused
+        elif topic == self.left_info:
+            raw_from_rectified = np.eye(4)
+            if self.input.rectify:  # the rectified left view: Rectifier.raw_from_rectified, from R alone
+                raw_from_rectified[:3, :3] = np.asarray(msg.r, dtype=np.float64).reshape(3, 3).T
+            self.poses.set_camera(str(msg.header.frame_id), raw_from_rectified)
+        elif topic == self.left_image:
+            self._waiting.append(stamp_to_nanoseconds(msg.header.stamp))
+        return self._decide(log_ns)
+
+    def finish(self) -> list[tuple[int, PoseAt]]:
+        """Decide every stamp still waiting (the end of a pass)."""
+        return self._decide(None)
+
+    def _decide(self, now_ns: int | None) -> list[tuple[int, PoseAt]]:
+        decided = []
+        while self._waiting:
+            stamp = self._waiting[0]
+            newest = self.poses.newest_ns
+            if now_ns is not None and (newest is None or newest < stamp) and now_ns <= stamp + self.max_gap_ns:
+                break  # TF may still reach the stamp
+            self._waiting.pop(0)
+            found = self.poses.pose_at(stamp)
+            if found.pose is None:
+                self.misses[found.reason or "tf_lookup_failed"] += 1
+            decided.append((stamp, found))
+        return decided
+
+
+def pose_stamped(pose: NDArray[np.float64], stamp_ns: int, frame_id: str) -> Any:
+    """A ``geometry_msgs/PoseStamped`` of a 4x4 pose (metres; rotation as a unit quaternion x, y, z, w)."""
+    from geometry_msgs.msg import PoseStamped
+
+    msg = PoseStamped()
+    msg.header.stamp = nanoseconds_to_stamp(stamp_ns)
+    msg.header.frame_id = frame_id
+    msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = (float(v) for v in pose[:3, 3])
+    o = msg.pose.orientation
+    o.x, o.y, o.z, o.w = (float(v) for v in quaternion_from_rotation(pose[:3, :3]))
+    return msg
+
+
 class PlayerNode(Node):
     """Publishes the messages of a bag with their recorded timing scaled by ``rate`` (see the module docstring).
 
     Attributes:
         finished: a future that completes when playback ended (never with ``loop``).
-        counts: messages published so far, per bag topic.
+        counts: messages published so far, per bag topic (and the pose topic with ``pose_source: tf``).
+        pose_misses: ``pose_source: tf``: left image stamps without a pose, per TF reason.
     """
 
     def __init__(self, **kwargs: Any) -> None:
@@ -142,6 +292,7 @@ class PlayerNode(Node):
             raise PlayerConfigError(
                 f"parameter 'qos_reliability' is {reliability!r}; expected one of {', '.join(_RELIABILITIES)}"
             )
+        pose_input = self._pose_input()
 
         bag = self._bag = open_bag(bag_path)
         offset_ns = round(start_offset * _NS_PER_S)
@@ -169,6 +320,13 @@ class PlayerNode(Node):
             self._publishers_by_topic[name] = self.create_publisher(msg_class, name.lstrip("/"), qos)
         if not self._publishers_by_topic:
             raise PlayerConfigError(f"bag {bag_path} has no topic this ROS installation can publish")
+        self._tf_poses: BagTFPoses | None = None
+        self._pose_publisher: Publisher | None = None
+        self._pose_topic = ""
+        self.pose_misses: Counter[str] = Counter()
+        self._warned: set[str] = set()
+        if pose_input is not None:
+            self._setup_tf_poses(bag, pose_input, qos)
         self._clock_publisher: Publisher | None = None
         if publish_clock:
             from rosgraph_msgs.msg import Clock as ClockMsg
@@ -178,6 +336,8 @@ class PlayerNode(Node):
 
         self.finished: Future = Future()
         self.counts: dict[str, int] = dict.fromkeys(self._publishers_by_topic, 0)
+        if self._pose_publisher is not None:
+            self.counts[self._pose_topic] = 0
         self._iterator: Iterator[RawMessage] | None = None
         self._pending: RawMessage | None = None
         self._wall_start_ns = 0
@@ -235,11 +395,118 @@ class PlayerNode(Node):
             10,
             _descriptor("publisher history depth", integer_range=[IntegerRange(from_value=1, to_value=1000, step=1)]),
         )
+        self.declare_parameter(
+            "pose_source",
+            "none",
+            _descriptor(
+                "none: publish the bag as recorded; tf: also publish the left camera's PoseStamped composed from "
+                "the bag's /tf and /tf_static at each left image stamp",
+                additional_constraints="none or tf",
+            ),
+        )
+        self.declare_parameter("world_frame", "", _descriptor("pose_source tf: the fixed frame, e.g. odom or map"))
+        self.declare_parameter(
+            "camera_frame", "", _descriptor("pose_source tf: the left camera's frame; empty: the left camera_info's")
+        )
+        self.declare_parameter(
+            "stereo_namespace",
+            "",
+            _descriptor("pose_source tf: namespace of the bag's stereo topics; empty: found from the left image"),
+        )
+        self.declare_parameter(
+            "remaps",
+            Parameter.Type.STRING_ARRAY,
+            _descriptor("pose_source tf: FROM:=TO rules naming the bag's topics, as selfcontra label --remap"),
+        )
+        self.declare_parameter(
+            "image_transport",
+            "raw",
+            _descriptor(
+                "pose_source tf: the bag's images are raw or compressed", additional_constraints="raw or compressed"
+            ),
+        )
+        self.declare_parameter(
+            "rectify", False, _descriptor("pose_source tf: the bag has image_raw; the pose is the rectified view's")
+        )
+
+    def _pose_input(self) -> StereoInput | None:
+        """The stereo input of ``pose_source: tf`` (None for ``none``).
+
+        Raises:
+            PlayerConfigError: an invalid pose_source, image_transport, remap rule or missing world_frame.
+        """
+        p = self.get_parameter
+        source = str(p("pose_source").value)
+        if source not in PLAYER_POSE_SOURCES:
+            raise PlayerConfigError(
+                f"parameter 'pose_source' is {source!r}; expected one of {', '.join(PLAYER_POSE_SOURCES)}"
+            )
+        transport = str(p("image_transport").value)
+        if transport not in IMAGE_TRANSPORTS:
+            raise PlayerConfigError(
+                f"parameter 'image_transport' is {transport!r}; expected one of {', '.join(IMAGE_TRANSPORTS)}"
+            )
+        try:
+            remaps = tuple(str(rule) for rule in p("remaps").value)
+        except ParameterUninitializedException:
+            remaps = ()
+        if source == "none":
+            return None
+        camera_frame = str(p("camera_frame").value)
+        try:
+            return StereoInput(
+                image_transport=transport,
+                rectify=bool(p("rectify").value),
+                remaps=remaps,
+                pose_source="tf",
+                world_frame=str(p("world_frame").value),
+                camera_frame=camera_frame or None,
+            )
+        except SelfContraError as exc:
+            raise PlayerConfigError(f"pose_source tf: {exc} (parameters world_frame, remaps, ...)") from exc
+
+    def _setup_tf_poses(self, bag: Bag, stereo_input: StereoInput, qos: QoSProfile) -> None:
+        """Find the bag's left image, left camera_info and TF topics; create the pose publisher.
+
+        Raises:
+            PlayerConfigError: the bag lacks them, or already has the pose topic.
+            BagError: the stereo namespace cannot be found.
+        """
+        from geometry_msgs.msg import PoseStamped
+
+        namespace = str(self.get_parameter("stereo_namespace").value)
+        ns = stereo_input.namespace(list(bag.topics), namespace or None)
+        topic_map = stereo_input.topics(ns)
+        tf_poses = BagTFPoses(stereo_input, topic_map)
+        missing = [t for t in (tf_poses.left_image, tf_poses.left_info) if t not in bag.topics]
+        if missing:
+            raise PlayerConfigError(
+                f"pose_source tf: the bag has no {' and no '.join(missing)} (topics: {', '.join(bag.topics)}); "
+                "set stereo_namespace, remaps, image_transport and rectify as for 'selfcontra label BAG' "
+                "('selfcontra inspect BAG' suggests them)"
+            )
+        if tf_poses.tf_topic not in bag.topics and tf_poses.tf_static_topic not in bag.topics:
+            raise PlayerConfigError(
+                f"pose_source tf: the bag has neither {tf_poses.tf_topic} nor {tf_poses.tf_static_topic}"
+            )
+        self._pose_topic = topic_map[topics.POSE]
+        if self._pose_topic in bag.topics:
+            raise PlayerConfigError(
+                f"pose_source tf: the bag has its own pose topic {self._pose_topic}; play it as recorded "
+                "(pose_source none) or move the TF pose elsewhere (remaps pose:=...)"
+            )
+        self._tf_poses = tf_poses
+        self._pose_publisher = self.create_publisher(PoseStamped, self._pose_topic.lstrip("/"), qos)
+        self.get_logger().info(
+            f"TF to pose: {stereo_input.camera_frame or 'the left camera_info frame'} in {stereo_input.world_frame} "
+            f"at each {tf_poses.left_image} stamp, published on {self._pose_publisher.topic_name}"
+        )
 
     # ------------------------------------------------------------------ playback
 
     def _subscription_count(self) -> int:
-        return sum(p.get_subscription_count() for p in self._publishers_by_topic.values())
+        publishers = [*self._publishers_by_topic.values(), *([self._pose_publisher] if self._pose_publisher else [])]
+        return sum(p.get_subscription_count() for p in publishers)
 
     def _on_timer(self) -> None:
         if not self._playing:
@@ -269,6 +536,13 @@ class PlayerNode(Node):
         self._wall_start_ns = time.monotonic_ns() + delay_ns
         self._bag_start_ns = self._pending.stamp_ns if self._pending is not None else 0
         self._pass_instants = 0  # distinct stamps published in this pass
+        if self._tf_poses is not None:
+            self._tf_poses.reset()
+            static = self._tf_poses.tf_static_topic
+            if self._start_ns is not None and static in self._bag.topics:
+                # Static transforms are latched: those recorded before start_offset still hold.
+                for raw in self._bag.raw_messages([static], stop_ns=self._start_ns):
+                    self._tf_message(raw)
 
     def _loop_gap_ns(self) -> int:
         """Wall time between the last message of a pass and the first of the next: one mean stamp period."""
@@ -295,6 +569,8 @@ class PlayerNode(Node):
             self._last_stamp_ns = self._pending.stamp_ns
             self._publish(self._pending)
             self._pending = next(self._iterator, None)
+            if self._pending is None and self._tf_poses is not None:
+                self._publish_poses(self._tf_poses.finish())
             if self._pending is None and self._loop:
                 self._loops += 1
                 self.get_logger().debug(f"loop: starting pass {self._loops + 1}")
@@ -306,24 +582,57 @@ class PlayerNode(Node):
 
     def _publish(self, message: RawMessage) -> None:
         publisher = self._publishers_by_topic.get(message.topic)
-        if publisher is None:
+        if publisher is not None:
+            if self._clock_publisher is not None:
+                clock = self._clock_msg()
+                clock.clock.sec, clock.clock.nanosec = divmod(message.stamp_ns, _NS_PER_S)
+                self._clock_publisher.publish(clock)
+            publisher.publish(message.data)  # raw CDR as stored: bit-exact, no deserialisation
+            now = time.monotonic_ns()
+            if self._first_publish_ns is None:
+                self._first_publish_ns = now
+            self._last_publish_ns = now
+            self.counts[message.topic] += 1
+        if self._tf_poses is not None and message.topic in self._tf_poses.topics:
+            self._tf_message(message)
+
+    def _warn_once(self, key: str, text: str) -> None:
+        if key not in self._warned:
+            self._warned.add(key)
+            self.get_logger().warning(text)
+
+    def _tf_message(self, message: RawMessage) -> None:
+        """Feed a TF, left image or left camera_info message to the TF conversion; publish the poses it decides."""
+        assert self._tf_poses is not None and self._bag is not None
+        try:
+            msg = self._bag.deserialize(message.data, message.msgtype, topic=message.topic)
+            decided = self._tf_poses.add(message.topic, message.stamp_ns, msg)
+        except SelfContraError as exc:  # a bad message costs its pose(s), never the playback
+            self.pose_misses["bad_message"] += 1
+            self._warn_once("bad_message", f"TF to pose: {exc} (further bad messages are only counted)")
             return
-        if self._clock_publisher is not None:
-            clock = self._clock_msg()
-            clock.clock.sec, clock.clock.nanosec = divmod(message.stamp_ns, _NS_PER_S)
-            self._clock_publisher.publish(clock)
-        publisher.publish(message.data)  # raw CDR as stored: bit-exact, no deserialisation
-        now = time.monotonic_ns()
-        if self._first_publish_ns is None:
-            self._first_publish_ns = now
-        self._last_publish_ns = now
-        self.counts[message.topic] += 1
+        self._publish_poses(decided)
+
+    def _publish_poses(self, decided: list[tuple[int, PoseAt]]) -> None:
+        assert self._tf_poses is not None and self._pose_publisher is not None
+        world = self._tf_poses.poses.world_frame
+        for stamp_ns, found in decided:
+            if found.pose is None:
+                reason = found.reason or "tf_lookup_failed"
+                self.pose_misses[reason] += 1
+                self._warn_once(
+                    reason, f"no pose for the left image at {stamp_ns} ns ({reason}): {found.detail} (further: counted)"
+                )
+                continue
+            self._pose_publisher.publish(pose_stamped(found.pose, stamp_ns, world))
+            self.counts[self._pose_topic] += 1
 
     def _log_summary(self) -> None:
         total = sum(self.counts.values())
         span = (self._last_publish_ns - (self._first_publish_ns or self._last_publish_ns)) / _NS_PER_S
         per_topic = ", ".join(f"{name} {count}" for name, count in self.counts.items())
-        self.get_logger().info(f"done: published {total} messages in {span:.3f} s ({per_topic})")
+        misses = f"; left images without a TF pose: {dict(self.pose_misses)}" if self.pose_misses else ""
+        self.get_logger().info(f"done: published {total} messages in {span:.3f} s ({per_topic}){misses}")
 
     def wait_for_acknowledgements(self, timeout_s: float = _ACK_TIMEOUT_S) -> bool:
         """Wait until reliable subscribers acknowledged every published message, at most ``timeout_s`` in all.
