@@ -43,6 +43,9 @@ class View:
         reliable: pixels whose match is not ambiguous (see :func:`ambiguous_pixels`): only these vote
             as references in Stage 2 and may be labelled positive. All true when no cue is enabled.
         labelled: whether labels for this view have been produced.
+        bands: the view's fattening bands (flat bool) by ``(jump_px, occluded_side_px, other_px)``, computed
+            once by Stage 2 (:func:`selfcontra_ros.stages.voting.view_band`) for the view as query and as
+            reference.
     """
 
     index: int
@@ -58,6 +61,7 @@ class View:
     support_bits: NDArray[np.uint64]
     reliable: NDArray[np.bool_]
     labelled: bool = field(default=False)
+    bands: dict[tuple[float, int, int], NDArray[np.bool_]] = field(default_factory=dict, repr=False)
 
     def from_view(self, other: View) -> NDArray[np.float64]:
         """4x4 transform taking points of ``other``'s left frame into this view's left frame."""

@@ -38,7 +38,10 @@ a fattened point lies a few centimetres beside the object's surface, inside
 the depth uncertainty of every reference that sees that surface, and nearby
 references repeat the same fattening: the multi-view test confirms it, and
 on the synthetic scenes these were most of the wrong positives. Pixels of
-the band stay open to negative votes and to Stage 3.
+the band stay open to negative votes and to Stage 3. The same band of each
+*reference* (``free_space_band``, on in the labeler) keeps that reference's
+fattened points out of the free-space z-buffer, where they would vote against
+the correct background they float in front of.
 """
 
 from __future__ import annotations
@@ -57,7 +60,7 @@ from selfcontra_ros.stages import kernels
 from selfcontra_ros.stages._common import tolerance_code
 from selfcontra_ros.window import View, support_count
 
-__all__ = ["NEGATIVE_VOTERS", "VotingResult", "consistency_voting", "fattening_band"]
+__all__ = ["NEGATIVE_VOTERS", "VotingResult", "consistency_voting", "fattening_band", "view_band"]
 
 #: Which reference measurements may cast a negative vote (``negative_voters``):
 #: ``more_accurate`` - only those with ``u_r < u_q``, as for positive votes (paper);
@@ -99,6 +102,7 @@ def _reference_votes(
     negatives_from_any: bool,
     free_space: bool,
     free_space_neighbourhood: int,
+    splat_ref: View | None = None,
 ) -> None:
     """Add the vote (if any) of one reference view to every valid query pixel, in place (flat ``(H*W,)``).
 
@@ -142,6 +146,8 @@ def _reference_votes(
     )
     if not free_space:
         return
+    if splat_ref is not None:
+        ref = splat_ref
     # The z-buffer only for the pixels the lookup left undecided.
     source = kernels.splat_supported_kernel(ref.points, ref.valid, ref.support_bits, query_from_ref, pending, *geometry)
     kernels.free_space_votes_kernel(
@@ -202,6 +208,23 @@ def fattening_band(
         return valid & (filled - smallest > jump_px)
 
 
+def view_band(
+    view: View, camera: StereoCamera, jump_px: float, occluded_side_px: int, other_px: int
+) -> NDArray[np.bool_]:
+    """The :func:`fattening_band` of a view's disparity (flat), computed once per view and size (``View.bands``)."""
+    key = (float(jump_px), int(occluded_side_px), int(other_px))
+    band = view.bands.get(key)
+    if band is None:
+        band = fattening_band(
+            view.disparity.reshape(camera.height, camera.width),
+            jump_px=jump_px,
+            occluded_side_px=occluded_side_px,
+            other_px=other_px,
+        ).ravel()
+        view.bands[key] = band
+    return band
+
+
 def consistency_voting(
     query: View,
     refs: list[View],
@@ -221,6 +244,7 @@ def consistency_voting(
     positive_sigma: float | None = None,
     negative_sigma: float | None = None,
     abstain_ambiguous: bool = True,
+    free_space_band: bool = False,
 ) -> VotingResult:
     """Stage 2 for one query view against the reference views ``refs``.
 
@@ -252,6 +276,9 @@ def consistency_voting(
             ``sigma_max`` (the paper). Between the two: no vote. Free-space violations keep ``sigma_max``.
         abstain_ambiguous: query pixels the view marks unreliable (``View.reliable``) are never positive;
             false: only the references' unreliable pixels are left out (they never vote).
+        free_space_band: with ``edge_jump_px > 0``, a reference point in the reference's own
+            :func:`fattening_band` is left out of the free-space z-buffer (it is the reference's foreground
+            fattening, floating in front of correct background); false = the paper.
     """
     n = query.valid.size
     mode = tolerance_code(tolerance)
@@ -265,6 +292,10 @@ def consistency_voting(
         gated = ref
         if not ref.reliable[ref.valid].all():
             gated = dataclasses.replace(ref, support_bits=np.where(ref.reliable, ref.support_bits, np.uint64(0)))
+        splat_ref = None
+        if free_space_band and edge_jump_px > 0:
+            band = view_band(ref, camera, edge_jump_px, edge_occluded_side_px, edge_other_px)
+            splat_ref = dataclasses.replace(gated, support_bits=np.where(band, np.uint64(0), gated.support_bits))
         _reference_votes(
             full_sum,
             full_voted,
@@ -280,6 +311,7 @@ def consistency_voting(
             negatives_from_any=negative_voters == "any",
             free_space=free_space_votes,
             free_space_neighbourhood=free_space_neighbourhood,
+            splat_ref=splat_ref,
         )
     labels = np.full(n, UNKNOWN, dtype=np.uint8)
     positive = full_voted & (full_sum > 0)
@@ -288,13 +320,7 @@ def consistency_voting(
     if min_query_support > 0:
         positive &= support_count(query.support_bits) >= min_query_support
     if edge_jump_px > 0:
-        shape = (camera.height, camera.width)
-        positive &= ~fattening_band(
-            query.disparity.reshape(shape),
-            jump_px=edge_jump_px,
-            occluded_side_px=edge_occluded_side_px,
-            other_px=edge_other_px,
-        ).ravel()
+        positive &= ~view_band(query, camera, edge_jump_px, edge_occluded_side_px, edge_other_px)
     labels[positive] = POSITIVE
     labels[full_voted & (full_sum < 0)] = NEGATIVE
     return VotingResult(vote_sum=full_sum, voted=full_voted, labels=labels)

@@ -26,7 +26,7 @@ from selfcontra_ros.projection import project_to_pixels, transform
 from selfcontra_ros.stages import kernels
 from selfcontra_ros.stages._common import tolerance_sq
 from selfcontra_ros.stages.outliers import augmented_depth
-from selfcontra_ros.stages.voting import consistency_voting
+from selfcontra_ros.stages.voting import consistency_voting, fattening_band
 from selfcontra_ros.window import View, make_view, support_count
 
 CAMERA = StereoCamera(fx=120.0, fy=120.0, cx=31.5, cy=23.5, baseline=1.0, width=64, height=48)
@@ -103,12 +103,17 @@ def _tol_sq(mode: str, query: View, ref: View, q: int, x_r: np.ndarray, u_r: flo
     )
 
 
-def _slow_splat(query: View, ref: View) -> dict[int, int]:
-    """Brute-force z-buffer: query pixel -> reference pixel of the nearest supported valid point (later wins ties)."""
+def _slow_splat(query: View, ref: View, left_out: np.ndarray | None = None) -> dict[int, int]:
+    """Brute-force z-buffer: query pixel -> reference pixel of the nearest supported valid point (later wins ties).
+
+    ``left_out`` (flat bool): reference pixels kept out of the z-buffer.
+    """
     in_q = transform(query.from_view(ref), ref.points)
     pixel, ok = project_to_pixels(in_q, CAMERA)
     nearest: dict[int, int] = {}
     for s in range(ref.valid.size):
+        if left_out is not None and left_out[s]:
+            continue
         if ref.valid[s] and ref.support_bits[s] != 0 and ok[s]:
             p = int(pixel[s])
             if p not in nearest or in_q[s, 2] <= in_q[nearest[p], 2]:
@@ -128,16 +133,22 @@ def _slow_votes(
     negatives_from_any: bool,
     free_space: bool,
     radius: int,
+    band_px: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """One reference's vote per query pixel, pixel by pixel, as DESIGN section 3 states the rules.
 
-    Returns the votes and the pixels whose angle or range comparison was a tie (module docstring).
+    ``band_px > 0``: the reference's fattening band with that jump (16 px to the left, 3 elsewhere) is kept
+    out of the free-space z-buffer. Returns the votes and the pixels whose angle or range comparison was a
+    tie (module docstring).
     """
     votes = np.zeros(query.valid.size)
     doubtful = np.zeros(query.valid.size, dtype=bool)
     ref_from_query = ref.from_view(query)
     support = support_count(ref.support_bits)
-    nearest = _slow_splat(query, ref) if free_space else {}
+    band = None
+    if band_px > 0:
+        band = _band(ref, band_px)
+    nearest = _slow_splat(query, ref, band) if free_space else {}
     centre_q = np.array([0.5 * CAMERA.baseline, 0.0, 0.0])
     centre_r = transform(query.pose_inv, ref.centre[None])[0]
     for q in np.flatnonzero(query.valid):
@@ -188,12 +199,19 @@ def _slow_votes(
     return votes, doubtful
 
 
+def _band(view: View, jump_px: float) -> np.ndarray:
+    """The view's fattening band (flat), as the labeler computes it (16 px to the left, 3 px elsewhere)."""
+    shape = (CAMERA.height, CAMERA.width)
+    return fattening_band(view.disparity.reshape(shape), jump_px=jump_px, occluded_side_px=16, other_px=3).ravel()
+
+
 OPTIONS = [
     pytest.param({}, id="defaults"),
     pytest.param({"tolerance": "query"}, id="query-tolerance"),
     pytest.param({"tolerance": "smaller", "negatives_from_any": True}, id="smaller-any"),
     pytest.param({"min_angle_deg": 12.0}, id="min-angle"),
     pytest.param({"free_space": False}, id="no-free-space"),
+    pytest.param({"band_px": 4.0}, id="reference-band"),
     pytest.param({"radius": 0, "positive_sigma": 2.0, "negative_sigma": 2.0}, id="paper"),
 ]
 
@@ -209,6 +227,7 @@ def test_consistency_voting_matches_slow_reference(options: dict) -> None:
         "negatives_from_any": False,
         "free_space": True,
         "radius": 2,
+        "band_px": 0.0,
     } | options
     expected_sum = np.zeros(query.valid.size)
     expected_voted = np.zeros(query.valid.size, dtype=bool)
@@ -231,12 +250,16 @@ def test_consistency_voting_matches_slow_reference(options: dict) -> None:
         free_space_neighbourhood=o["radius"],
         positive_sigma=o["positive_sigma"],
         negative_sigma=o["negative_sigma"],
+        edge_jump_px=o["band_px"],
+        free_space_band=o["band_px"] > 0,
     )
     assert doubtful.mean() < 0.01, f"{int(doubtful.sum())} pixels decided at a tie"
     clear = ~doubtful
     np.testing.assert_array_equal(result.voted[clear], expected_voted[clear])
     np.testing.assert_allclose(result.vote_sum[clear], expected_sum[clear], rtol=1e-12, atol=0.0)
     expected_labels = np.where(expected_sum > 0, POSITIVE, np.where(expected_sum < 0, NEGATIVE, UNKNOWN))
+    if o["band_px"] > 0:  # the query's own band is never positive (edge_jump_px)
+        expected_labels[(expected_labels == POSITIVE) & _band(query, o["band_px"])] = UNKNOWN
     np.testing.assert_array_equal(result.labels[clear], np.where(expected_voted, expected_labels, UNKNOWN)[clear])
     # The scene must exercise both signs, or the comparison proves little.
     assert (expected_sum > 0).sum() > 50 and (expected_sum < 0).sum() > 10
@@ -254,6 +277,10 @@ def test_scene_exercises_every_kind_of_vote() -> None:
     assert free_space.sum() > 5
     assert ((with_outline == 0) & free_space).sum() > 0  # some suppressed as outlines
     assert ((with_outline < 0) & free_space).sum() > 0  # and some not
+    # The reference's fattening band holds free-space voters, and keeping it out silences some of them.
+    with_band, _ = _slow_votes(query, ref, **base, negatives_from_any=False, free_space=True, radius=2, band_px=4.0)
+    assert _band(ref, 4.0).sum() > 0
+    assert ((with_outline < 0) & (with_band == 0)).sum() > 0
 
 
 @pytest.mark.parametrize("share_needed", [1.0, 0.3])
