@@ -483,7 +483,8 @@ class LabelerNode(Node):
         Args:
             transform_source: with ``pose_source: tf``, the TF to read instead of a tf2_ros
                 ``Buffer`` + ``TransformListener`` (e.g. a :class:`~selfcontra_ros.bags.tf.TFBuffer`
-                that its owner fills: tests, or a program embedding the node).
+                that its owner fills: tests, or a program embedding the node). The node discards
+                the transforms older than the frames it has its poses for.
             kwargs: passed to ``rclpy.node.Node`` (``context``, ``parameter_overrides``, ...).
 
         Raises:
@@ -717,6 +718,8 @@ class LabelerNode(Node):
                 f"parameters 'world_frame' and 'camera_frame' apply to pose_source 'tf' only "
                 f"(pose_source is {self._pose_source!r})"
             )
+        # Before any thread starts: a missing tf2_ros stops the node at once.
+        self._tf2: Any = self._import_tf2() if self._pose_source == "tf" and self._transform_source is None else None
         if self._sync_mode == "exact" and self._slop != 0.0:
             raise LabelerConfigError(f"parameter 'slop' is {self._slop:g} s with sync 'exact'; use sync:=approximate")
         self._external = self.matcher_params.algorithm == "external"
@@ -826,7 +829,15 @@ class LabelerNode(Node):
         )
 
     def _tf2_source(self) -> Tf2Transforms:
-        """A tf2_ros ``Buffer`` filled by a ``TransformListener`` on this node (``/tf``, ``/tf_static``).
+        """A tf2_ros ``Buffer`` filled by a ``TransformListener`` on this node (``/tf``, ``/tf_static``)."""
+        tf2_ros = self._tf2
+        buffer = tf2_ros.Buffer(node=self)
+        self._tf_listener = tf2_ros.TransformListener(buffer, self)
+        return Tf2Transforms(buffer, tf2_ros)
+
+    @staticmethod
+    def _import_tf2() -> Any:
+        """The ``tf2_ros`` module.
 
         Raises:
             LabelerConfigError: tf2_ros is not installed (naming the alternatives).
@@ -843,9 +854,7 @@ class LabelerNode(Node):
                 "estimate the poses (pose_source odometry); offline, 'selfcontra label BAG --pose-source tf' "
                 "needs no ROS at all"
             ) from exc
-        buffer = tf2_ros.Buffer(node=self)
-        self._tf_listener = tf2_ros.TransformListener(buffer, self)
-        return Tf2Transforms(buffer, tf2_ros)
+        return tf2_ros
 
     def _retry_tf(self) -> None:
         """Timer: frames waiting for TF get another lookup (tf2_ros fills its buffer without telling the node)."""
