@@ -107,7 +107,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.task import Future
 
 from selfcontra_ros.bags import topics
-from selfcontra_ros.bags.reader import Bag, RawMessage, open_bag
+from selfcontra_ros.bags.reader import Bag, BagError, RawMessage, open_bag
 from selfcontra_ros.bags.stereo_input import IMAGE_TRANSPORTS, PoseAt, StereoInput, TFPoses
 from selfcontra_ros.bags.tf import TFBuffer
 from selfcontra_ros.errors import SelfContraError
@@ -469,13 +469,18 @@ class PlayerNode(Node):
         """Find the bag's left image, left camera_info and TF topics; create the pose publisher.
 
         Raises:
-            PlayerConfigError: the bag lacks them, or already has the pose topic.
-            BagError: the stereo namespace cannot be found.
+            PlayerConfigError: the bag lacks them (or the stereo namespace cannot be found), or already
+                has the pose topic.
         """
         from geometry_msgs.msg import PoseStamped
 
         namespace = str(self.get_parameter("stereo_namespace").value)
-        ns = stereo_input.namespace(list(bag.topics), namespace or None)
+        try:
+            ns = stereo_input.namespace(list(bag.topics), namespace or None)
+        except BagError as exc:  # worded for the command line: name the player's parameters too
+            raise PlayerConfigError(
+                f"pose_source tf: {exc} (the player's parameters: remaps, stereo_namespace)"
+            ) from exc
         topic_map = stereo_input.topics(ns)
         tf_poses = BagTFPoses(stereo_input, topic_map)
         missing = [t for t in (tf_poses.left_image, tf_poses.left_info) if t not in bag.topics]
