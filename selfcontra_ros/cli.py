@@ -13,7 +13,7 @@ import signal
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from selfcontra_ros import interrupts
 from selfcontra_ros.datasets import SCENES
@@ -61,20 +61,23 @@ def _add_input_options(group: argparse._ArgumentGroup, *, poses: bool = True) ->
     group.add_argument(
         "--image-transport",
         choices=("raw", "compressed"),
-        default="raw",
-        help="raw: sensor_msgs/Image; compressed: sensor_msgs/CompressedImage on <image topic>/compressed",
+        default=None,
+        help="raw: sensor_msgs/Image; compressed: sensor_msgs/CompressedImage on <image topic>/compressed "
+        "(default: as a labelled bag records it, else raw)",
     )
     group.add_argument(
         "--rectify",
-        action="store_true",
-        help="read left/right image_raw and rectify them with their camera_info (D, K, R, P)",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="read left/right image_raw and rectify them with their camera_info (D, K, R, P) "
+        "(default: as a labelled bag records it, else no)",
     )
     if poses:
         group.add_argument(
             "--pose-source",
             choices=("pose", "tf"),
-            default="pose",
-            help="pose: a PoseStamped/Odometry topic of the left camera; tf: /tf and /tf_static",
+            default=None,
+            help="pose: a PoseStamped/Odometry topic of the left camera; tf: /tf and /tf_static (default: pose)",
         )
         group.add_argument("--world-frame", default=None, help="fixed frame of the TF poses, e.g. odom or map")
         group.add_argument(
@@ -82,22 +85,55 @@ def _add_input_options(group: argparse._ArgumentGroup, *, poses: bool = True) ->
         )
 
 
-def _stereo_input(args: argparse.Namespace) -> StereoInput | None:
-    """The StereoInput of the options; None when all are defaults (the bag's own record then decides)."""
+def _input_options(args: argparse.Namespace) -> dict[str, Any]:
+    """The :class:`StereoInput` fields the user gave on the command line (none: an empty dict)."""
+    given: dict[str, Any] = {}
+    if args.remap:
+        given["remaps"] = tuple(args.remap)
+    for option in ("image_transport", "rectify", "pose_source", "world_frame", "camera_frame"):
+        value = getattr(args, option, None)
+        if value is not None:
+            given[option] = value
+    return given
+
+
+def _add_bag_data_options(parser: argparse.ArgumentParser, which: str) -> None:
+    """``--namespace`` and the robot-bag options of ``train`` / ``evaluate-confidence`` (bag data only)."""
+    group = parser.add_argument_group(f"a robot's own bag ({which}; see 'selfcontra inspect BAG')")
+    group.add_argument("--namespace", default=None, help="stereo topic namespace (default: found in the bag)")
+    group.add_argument(
+        "--slop",
+        type=float,
+        default=None,
+        help="pair left/right images within S seconds (default: as a labelled bag records it, else equal stamps)",
+    )
+    _add_input_options(group, poses=False)
+
+
+def _stereo_input(args: argparse.Namespace, bag: Path) -> StereoInput | None:
+    """How to read ``bag``: the input it records (a labelled bag's), with the options given replacing theirs.
+
+    None when no option was given: the library then reads the bag's own record.
+    """
+    given = _input_options(args)
+    if not given:
+        return None
+    from selfcontra_ros.bags.reader import open_bag
     from selfcontra_ros.bags.stereo_input import StereoInput
 
-    pose_source = getattr(args, "pose_source", "pose") or "pose"
-    defaults = not args.remap and args.image_transport == "raw" and not args.rectify and pose_source == "pose"
-    if defaults and not getattr(args, "world_frame", None) and not getattr(args, "camera_frame", None):
-        return None
-    return StereoInput(
-        image_transport=args.image_transport,
-        rectify=args.rectify,
-        remaps=tuple(args.remap),
-        pose_source=pose_source,
-        world_frame=getattr(args, "world_frame", None),
-        camera_frame=getattr(args, "camera_frame", None),
-    )
+    with open_bag(bag) as opened:
+        stored = StereoInput.of_bag(opened.custom_data)
+    return stored.with_options(**given)
+
+
+def _refuse_input_options(args: argparse.Namespace, data: str | Path) -> None:
+    """The robot-bag options apply to bags only."""
+    from selfcontra_ros.bags.reader import is_bag
+
+    given = _input_options(args)
+    if given and not is_bag(Path(data)):
+        flags = ", ".join("--remap" if name == "remaps" else "--" + name.replace("_", "-") for name in given)
+        raise SelfContraError(f"{flags} apply to bag input, not to {data}")
 
 
 def _cmd_synth(args: argparse.Namespace) -> int:
@@ -130,7 +166,7 @@ def _cmd_label(args: argparse.Namespace) -> int:
             pose_topic=args.pose_topic,
             disparity_topic=args.disparity_topic,
             model_out=Path(args.model_out) if args.model_out else None,
-            stereo_input=_stereo_input(args),
+            stereo_input=_stereo_input(args, source),
         )
         written = f"wrote the labelled bag {out} and {metrics_path(out)}"
         if args.model_out:
@@ -138,9 +174,7 @@ def _cmd_label(args: argparse.Namespace) -> int:
     else:
         from selfcontra_ros.pipeline import label_sequence
 
-        robot = args.remap or args.image_transport != "raw" or args.rectify or args.pose_source != "pose"
-        if robot:
-            raise SelfContraError("--remap, --image-transport, --rectify and --pose-source apply to bag input")
+        _refuse_input_options(args, source)
         if args.model_out:
             raise SelfContraError("--model-out applies to bag input (online confidence runs in the bag labeler)")
         metrics = label_sequence(
@@ -195,16 +229,14 @@ def _cmd_odometry(args: argparse.Namespace) -> int:
     from selfcontra_ros.bags.reader import is_bag
     from selfcontra_ros.odometry.run import odometry_command
 
-    robot = args.remap or args.image_transport != "raw" or args.rectify or args.pose_source is not None
-    if robot and not is_bag(Path(args.input)):
-        raise SelfContraError("--remap, --image-transport, --rectify and --pose-source apply to bag input")
+    _refuse_input_options(args, args.input)
     odometry_command(
         Path(args.input),
         Path(args.out),
         sequence=args.sequence,
         namespace=args.namespace,
         step=args.step,
-        stereo_input=_stereo_input(args),
+        stereo_input=_stereo_input(args, Path(args.input)) if is_bag(Path(args.input)) else None,
         reference_poses=args.pose_source is not None,
         slop=args.slop,
     )
@@ -212,6 +244,7 @@ def _cmd_odometry(args: argparse.Namespace) -> int:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
+    from selfcontra_ros.bags.reader import is_bag
     from selfcontra_ros.confidence.commands import train_command
     from selfcontra_ros.matching.base import MatcherParams
     from selfcontra_ros.threads import cap_jobs
@@ -219,12 +252,17 @@ def _cmd_train(args: argparse.Namespace) -> int:
     if len(args.data) != len(args.labels):
         raise SelfContraError(f"give one --labels per --data ({len(args.data)} --data, {len(args.labels)} --labels)")
     matcher = MatcherParams(algorithm=args.algorithm) if args.algorithm else None
+    if _input_options(args) and not any(is_bag(Path(d)) for d in args.data):
+        _refuse_input_options(args, args.data[0])
     summary = train_command(
         list(zip(args.data, args.labels, strict=True)),
         args.features,
         Path(args.out),
         matcher=matcher,
         n_jobs=cap_jobs(args.jobs),
+        namespace=args.namespace,
+        slop=args.slop,
+        stereo_inputs=[_stereo_input(args, Path(d)) if is_bag(Path(d)) else None for d in args.data],
     )
     print(
         f"trained {summary['feature_set']} forest on {summary['samples']} samples from {summary['frames']} frames "
@@ -234,11 +272,22 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 
 def _cmd_evaluate_confidence(args: argparse.Namespace) -> int:
+    from selfcontra_ros.bags.reader import is_bag
     from selfcontra_ros.confidence.commands import evaluate_command
     from selfcontra_ros.matching.base import MatcherParams
 
     matcher = MatcherParams(algorithm=args.algorithm) if args.algorithm else None
-    results = evaluate_command(args.model, args.data, Path(args.out), matcher=matcher)
+    _refuse_input_options(args, args.data)
+    stereo_input = _stereo_input(args, Path(args.data)) if is_bag(Path(args.data)) else None
+    results = evaluate_command(
+        args.model,
+        args.data,
+        Path(args.out),
+        matcher=matcher,
+        namespace=args.namespace,
+        stereo_input=stereo_input,
+        slop=args.slop,
+    )
     for name, record in results.items():
         if name != "table":
             mean = record["mean"]
@@ -381,6 +430,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="query algorithm for 'gt' labels (label folders bring their own; default sgbm)",
     )
     train.add_argument("--jobs", type=int, default=None, help="scikit-learn worker processes (default 1)")
+    _add_bag_data_options(train, "every --data bag")
     train.set_defaults(handler=_cmd_train)
 
     evaluate = sub.add_parser(
@@ -408,6 +458,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="query algorithm when only 'lrd' / 'wls' are evaluated (models bring their own; default sgbm)",
     )
+    _add_bag_data_options(evaluate, "a --data bag")
     evaluate.set_defaults(handler=_cmd_evaluate_confidence)
     return parser
 

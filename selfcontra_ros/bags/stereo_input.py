@@ -253,6 +253,26 @@ class StereoInput:
         text = custom_data.get(CUSTOM_DATA_KEY)
         return cls() if not text else cls.from_json(text)
 
+    def with_options(self, **options: Any) -> StereoInput:
+        """This input with the given fields replaced (the options a user gave over a bag's stored input).
+
+        ``remaps`` given are added after the stored ones (later rules win). A
+        ``pose_source`` other than ``tf`` clears the stored ``world_frame`` and
+        ``camera_frame`` unless they are given too.
+
+        Raises:
+            SelfContraError: an unknown field, or a combination :class:`StereoInput` refuses.
+        """
+        unknown = sorted(set(options) - {f for f in self.__dataclass_fields__ if f != "rules"})
+        if unknown:
+            raise SelfContraError(f"stereo input options {unknown} do not exist")
+        values = {k: v for k, v in asdict(self).items() if k != "rules"}
+        if "remaps" in options:
+            options["remaps"] = (*self.remaps, *options["remaps"])
+        if options.get("pose_source", self.pose_source) != "tf":
+            values.update(world_frame=None, camera_frame=None)
+        return StereoInput(**{**values, **options, "remaps": tuple(options.get("remaps", self.remaps))})
+
 
 class ImageError(ConversionError):
     """An image message that cannot be used; ``reason`` is the drop counter's key."""

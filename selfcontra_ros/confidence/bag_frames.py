@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,7 +46,7 @@ from selfcontra_ros.bags.reader import Bag, BagError, is_bag, open_bag
 from selfcontra_ros.bags.stereo_input import ImageError, StereoImages, StereoInput
 from selfcontra_ros.bags.sync import StampSynchronizer
 from selfcontra_ros.datasets.kitti import StereoFrame
-from selfcontra_ros.errors import CalibrationError, ConversionError
+from selfcontra_ros.errors import CalibrationError, ConversionError, SelfContraError
 from selfcontra_ros.geometry import StereoCamera
 from selfcontra_ros.labels import NEGATIVE
 from selfcontra_ros.matching.base import MatcherParams
@@ -78,8 +79,18 @@ def _namespace(bag: Bag, stereo_input: StereoInput, namespace: str | None) -> st
     return stereo_input.namespace(list(bag.topics), namespace)
 
 
-def _sync(bag: Bag) -> StampSynchronizer:
-    """The synchroniser the bag labeler recorded (``{"mode", "slop"}``), else exact."""
+def _sync(bag: Bag, slop_s: float | None = None) -> StampSynchronizer:
+    """The image pairing: ``slop_s`` (approximate when > 0), else what the bag labeler recorded, else exact.
+
+    The record is custom_data ``selfcontra.sync``: ``{"mode", "slop"}``.
+
+    Raises:
+        SelfContraError: a negative or non-finite ``slop_s``.
+    """
+    if slop_s is not None:
+        if not (math.isfinite(slop_s) and slop_s >= 0):
+            raise SelfContraError(f"slop must be a finite number of seconds >= 0, got {slop_s!r}")
+        return StampSynchronizer(("left", "right"), mode="approximate" if slop_s > 0 else "exact", slop=slop_s)
     mode, slop = "exact", 0.0
     text = bag.custom_data.get(_SYNC_KEY)
     if text:
@@ -187,7 +198,11 @@ class _FrameReader:
 
 
 def iter_bag_frames(
-    path: Path | str, *, namespace: str | None = None, stereo_input: StereoInput | None = None
+    path: Path | str,
+    *,
+    namespace: str | None = None,
+    stereo_input: StereoInput | None = None,
+    slop: float | None = None,
 ) -> Iterator[BagFrame]:
     """The stereo frames of a bag in stamp order (see the module docstring); images uint8, HxW or HxWx3 RGB.
 
@@ -195,6 +210,8 @@ def iter_bag_frames(
         path: rosbag2 folder or ``.mcap`` file.
         namespace: namespace of the stereo topics; chosen from the bag when None.
         stereo_input: how to read the bag; None: as recorded by the bag labeler, else the package's layout.
+        slop: pair left and right images within this many seconds (0: equal stamps); None: as
+            recorded by the bag labeler, else equal stamps.
 
     Raises:
         BagError: the bag cannot be read, lacks an image or camera_info topic, or yields no frame.
@@ -215,7 +232,7 @@ def iter_bag_frames(
                 raise BagError(f"bag {path} has no topic {topic[name]} ({msgtype}); it holds no stereo frames")
         gt_topic = topic[topics.GT_DISPARITY]
         has_gt = gt_topic in bag.topics
-        reader = _FrameReader(path, topic, read_as, _sync(bag), has_gt)
+        reader = _FrameReader(path, topic, read_as, _sync(bag, slop), has_gt)
         wanted = [topic[n] for n in needed] + ([gt_topic] if has_gt else [])
         yielded = 0
         for message in bag.messages(wanted):

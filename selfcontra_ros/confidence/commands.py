@@ -52,6 +52,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from selfcontra_ros import interrupts
+from selfcontra_ros.bags.stereo_input import StereoInput
 from selfcontra_ros.confidence import constants
 from selfcontra_ros.confidence.bag_frames import BagFrame, BagLabels, is_bag, iter_bag_frames, read_bag_labels
 from selfcontra_ros.confidence.baselines import wls_confidence
@@ -93,17 +94,34 @@ _COLUMNS = (("LRD", LRD), ("WLS", WLS), ("Ensemble", "ensemble"), ("Park", "park
 # ------------------------------------------------------------------------------------------- inputs
 
 
-def iter_frames(data: Path | str) -> Iterator[StereoFrame]:
+def iter_frames(
+    data: Path | str,
+    *,
+    namespace: str | None = None,
+    stereo_input: StereoInput | None = None,
+    slop: float | None = None,
+) -> Iterator[StereoFrame]:
     """Stereo frames of a sequence, a KITTI stereo split, Middlebury scenes or a bag (see the module docstring).
+
+    Args:
+        data: the folder or bag.
+        namespace: a bag's stereo namespace (default: found in the bag).
+        stereo_input: how a bag is read (a robot's topic names, compressed or raw images,
+            rectification); None: as a labelled bag records it, else the package's layout.
+        slop: a bag's left and right images are paired within this many seconds (0: equal
+            stamps); None: as a labelled bag records it, else equal stamps.
 
     Raises:
         DatasetError: when ``data`` is none of these.
+        SelfContraError: ``stereo_input`` given for data that is not a bag.
         BagError: a bag without stereo frames, or unreadable.
     """
     path = Path(data)
     if is_bag(path):
-        yield from iter_bag_frames(path)
+        yield from iter_bag_frames(path, namespace=namespace, stereo_input=stereo_input, slop=slop)
         return
+    if stereo_input is not None:
+        raise SelfContraError(f"a stereo input (remaps, image transport, rectify) applies to bags, not to {path}")
     scenes = middlebury_scenes(path)
     if scenes:
         for i, scene in enumerate(scenes):
@@ -206,8 +224,14 @@ def collect_samples(
     matcher: MatcherParams | None = None,
     max_per_class: int = int(constants.TRAINING["max_per_class"]),
     seed: int = int(constants.TRAINING["seed"]),
+    namespace: str | None = None,
+    stereo_inputs: Sequence[StereoInput | None] | None = None,
+    slop: float | None = None,
 ) -> tuple[dict[str, Samples], MatcherParams]:
     """Balanced training samples of several feature sets from ``(data, labels)`` pairs; matching runs once per frame.
+
+    ``namespace``, ``stereo_inputs`` (one per pair, None for a bag's own record) and ``slop``
+    say how data bags are read (:func:`iter_frames`).
 
     Returns:
         ``({feature set: samples}, query algorithm parameters)``.
@@ -217,14 +241,19 @@ def collect_samples(
             (or with data that is not a bag), label sources of different query algorithms.
         BagError: a bag that cannot be read or holds no stereo frames or no labels.
     """
+    bag_inputs: list[StereoInput | None] = list(stereo_inputs) if stereo_inputs is not None else [None] * len(pairs)
+    if len(bag_inputs) != len(pairs):
+        raise SelfContraError(
+            f"{len(bag_inputs)} stereo inputs for {len(pairs)} --data/--labels pairs; give one per pair"
+        )
     sources = [_label_source(labels, data) for data, labels in pairs]
     params = _matcher_params(sources, matcher)
     query = make_matcher(params)
     rng = np.random.default_rng(seed)
     parts: dict[str, list[Samples]] = {name: [] for name in feature_sets}
-    for (data, labels), source in zip(pairs, sources, strict=True):
+    for (data, labels), source, stereo_input in zip(pairs, sources, bag_inputs, strict=True):
         frames = matched = 0
-        for frame in iter_frames(data):
+        for frame in iter_frames(data, namespace=namespace, stereo_input=stereo_input, slop=slop):
             interrupts.check()
             frames += 1
             if not source.has_labels(frame):
@@ -257,6 +286,9 @@ def train_command(
     n_jobs: int | None = None,
     max_per_class: int = int(constants.TRAINING["max_per_class"]),
     forest: Mapping[str, Any] | None = None,
+    namespace: str | None = None,
+    stereo_inputs: Sequence[StereoInput | None] | None = None,
+    slop: float | None = None,
 ) -> dict[str, Any]:
     """Train a confidence forest of feature set ``features`` and write it to ``out`` (``.npz``).
 
@@ -271,6 +303,10 @@ def train_command(
         n_jobs: scikit-learn workers.
         max_per_class: per-image cap on samples of each class.
         forest: overrides of the forest constants (tests use smaller forests).
+        namespace: stereo namespace of the data bags (default: found in each bag).
+        stereo_inputs: how each data bag is read, one per pair (None: its own record, else the
+            package's layout): a robot's topic names, compressed images, rectification.
+        slop: data bags' left and right images paired within this many seconds; None: as recorded.
 
     Returns:
         Summary: ``model`` path, ``samples``, ``frames``, ``positive_share``, ``seconds``.
@@ -278,7 +314,15 @@ def train_command(
     if not pairs:
         raise SelfContraError("train needs at least one --data/--labels pair")
     start = time.perf_counter()
-    samples, params = collect_samples(pairs, [features], matcher=matcher, max_per_class=max_per_class)
+    samples, params = collect_samples(
+        pairs,
+        [features],
+        matcher=matcher,
+        max_per_class=max_per_class,
+        namespace=namespace,
+        stereo_inputs=stereo_inputs,
+        slop=slop,
+    )
     kinds = {GT if str(labels) == GT else "self" for _, labels in pairs}
     metadata = {
         "matcher": asdict(params),
@@ -399,12 +443,16 @@ def evaluate_command(
     *,
     matcher: MatcherParams | None = None,
     step: float = DEFAULT_STEP,
+    namespace: str | None = None,
+    stereo_input: StereoInput | None = None,
+    slop: float | None = None,
 ) -> dict[str, Any]:
     """Evaluate confidence models (or the baselines ``"lrd"``, ``"wls"``) by sparsification on frames with ground truth.
 
     The query algorithm is the one the models were trained for (all must
     agree); with only baselines, ``matcher`` or the default. Matching and each
-    feature set are computed once per frame for all models.
+    feature set are computed once per frame for all models. ``namespace``,
+    ``stereo_input`` and ``slop`` say how a bag ``data`` is read (:func:`iter_frames`).
 
     Returns:
         ``{model name: {"frames": [...], "mean": {...}}}`` plus ``"table"`` (the Markdown table).
@@ -428,7 +476,7 @@ def evaluate_command(
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     frames: dict[str, list[dict[str, Any]]] = {e.name: [] for e in entries}
-    for frame in iter_frames(data):
+    for frame in iter_frames(data, namespace=namespace, stereo_input=stereo_input, slop=slop):
         interrupts.check()
         if frame.gt_disparity is None:
             continue

@@ -223,3 +223,67 @@ def test_compressed_package_bags_label_like_raw_ones(
     ours, theirs = read_bag_labels(tmp_path / "out"), read_bag_labels(package_bag)
     for stamp in theirs.images:
         np.testing.assert_array_equal(ours.at(stamp), theirs.at(stamp))
+
+
+def _robot_options() -> list[str]:
+    remaps = [arg for rule in LAYOUT.remaps() for arg in ("--remap", rule)]
+    return ["--namespace", LAYOUT.namespace, *remaps, "--image-transport", "compressed", "--rectify"]
+
+
+def test_train_and_evaluate_read_a_robot_bag_with_its_options(
+    robot_bag: Path, robot_labels: tuple[Path, dict[str, Any]], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """train / evaluate-confidence take the robot options: the raw robot bag reads as its labelled copy does.
+
+    The labelled bag records how it was read (and its sync); the raw recording needs the options. Both
+    give the same frames, so the LRD scores are equal, and training matches every label image.
+    """
+    labelled, _ = robot_labels
+    options = [*_robot_options(), "--slop", "0.005"]
+    raw_out, stored_out = tmp_path / "raw", tmp_path / "stored"
+    argv = ["evaluate-confidence", "--model", "lrd", "--algorithm", "sgbm"]
+    assert cli.main([*argv, "--data", str(robot_bag), "--out", str(raw_out), *options]) == 0
+    assert cli.main([*argv, "--data", str(labelled), "--out", str(stored_out)]) == 0
+    raw, stored = (json.loads((out / "metrics.json").read_text()) for out in (raw_out, stored_out))
+    assert len(raw["frames"]) == FRAMES
+    assert raw["frames"] == stored["frames"]
+    capsys.readouterr()
+    model = tmp_path / "robot.model"
+    train = ["train", "--features", "gcp", "--data", str(robot_bag), "--labels", str(labelled), "--out", str(model)]
+    assert cli.main([*train, *options]) == 0
+    assert f"from {FRAMES} frames" in capsys.readouterr().out
+    assert model.is_file()
+
+
+def test_options_given_for_a_labelled_bag_replace_only_their_part_of_its_record(
+    robot_labels: tuple[Path, dict[str, Any]], tmp_path: Path
+) -> None:
+    """--image-transport compressed on a labelled robot bag keeps its recorded remaps, rectify and TF poses."""
+    labelled, _ = robot_labels
+    args = cli.build_parser().parse_args(
+        [
+            "evaluate-confidence",
+            "--model",
+            "lrd",
+            "--data",
+            str(labelled),
+            "--out",
+            "x",
+            "--image-transport",
+            "compressed",
+        ]
+    )
+    read_as = cli._stereo_input(args, labelled)
+    assert read_as == ROBOT_INPUT
+    args = cli.build_parser().parse_args(
+        ["label", str(labelled), "--out", "x", "--no-rectify", "--pose-source", "pose"]
+    )
+    read_as = cli._stereo_input(args, labelled)
+    assert read_as is not None and read_as.remaps == ROBOT_INPUT.remaps and not read_as.rectify
+    assert read_as.pose_source == "pose" and read_as.world_frame is None
+    out = tmp_path / "eval"
+    options = ["--image-transport", "compressed", "--slop", "0.005"]
+    assert (
+        cli.main(["evaluate-confidence", "--model", "lrd", "--data", str(labelled), "--out", str(out), *options]) == 0
+    )
+    assert len(json.loads((out / "metrics.json").read_text())["frames"]) == FRAMES
