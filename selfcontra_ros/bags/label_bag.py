@@ -371,23 +371,25 @@ class _BagLabeler:
             self.pending.append(frame)
 
     def _camera_info(self, side: str, msg: Any) -> None:
+        """Keep the first valid calibration: the session, the rectification maps and the TF correction stay its own."""
         self.infos[side] = msg
         if len(self.infos) < 2:
             return
         try:
+            if self.camera is not None:
+                if not self.images.same_calibration(self.infos["left"], self.infos["right"]):
+                    # The session's window holds views of the first calibration; a new one would mix cameras.
+                    self.drop("camera_info_changed", f"a {side} camera_info differing from the first calibration")
+                return
             camera = self.images.camera_from_infos(self.infos["left"], self.infos["right"])
         except CalibrationError as exc:
             self.drop("bad_camera_info", f"a {side} camera_info: {exc}")
             del self.infos[side]
             return
-        if self.camera is None:
-            self.camera = camera
-            self.session = LabelingSession(camera, self.matcher_params, self.labeler_params, self.confidence)
-            if isinstance(self.poses, TFPoses):
-                self.poses.set_camera(str(self.infos["left"].header.frame_id), self.images.raw_from_rectified)
-        elif camera != self.camera:
-            # The session's window holds views of the first calibration; a new one would mix cameras.
-            self.drop("camera_info_changed", f"a {side} camera_info differing from the first calibration")
+        self.camera = camera
+        self.session = LabelingSession(camera, self.matcher_params, self.labeler_params, self.confidence)
+        if isinstance(self.poses, TFPoses):
+            self.poses.set_camera(str(self.infos["left"].header.frame_id), self.images.raw_from_rectified)
 
     # ------------------------------------------------------------------ processing
 

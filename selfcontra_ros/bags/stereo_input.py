@@ -45,7 +45,7 @@ from selfcontra_ros.bags.sync import PoseBuffer
 from selfcontra_ros.bags.tf import TFBuffer, TransformSource, normalize_frame
 from selfcontra_ros.errors import ConversionError, SelfContraError, TransformError
 from selfcontra_ros.geometry import StereoCamera
-from selfcontra_ros.rectification import Rectifier
+from selfcontra_ros.rectification import Rectifier, calibration_key
 from selfcontra_ros.ros.conversions import image_to_numpy, stereo_camera_from_camera_infos
 
 __all__ = [
@@ -301,21 +301,38 @@ class StereoImages:
         return self.rectifier.raw_from_rectified if self.rectifier is not None else np.eye(4)
 
     def camera_from_infos(self, left_info: Any, right_info: Any) -> StereoCamera:
-        """The (rectified) stereo camera of a camera_info pair; the rectification maps are built here, once.
+        """The (rectified) stereo camera of a camera_info pair; the rectification maps are built once per calibration.
+
+        A pair with the calibration in use (:meth:`same_calibration`) returns the
+        current camera without building anything; another calibration replaces it.
 
         Raises:
             CalibrationError: the infos do not describe a (rectifiable) pair.
         """
         if self.input.rectify:
-            rectifier = Rectifier.from_camera_infos(left_info, right_info)
-            if self.rectifier is None or rectifier.key != self.rectifier.key:
-                self.rectifier = rectifier
-            camera = rectifier.camera
+            if self.rectifier is None or not self.same_calibration(left_info, right_info):
+                self.rectifier = Rectifier.from_camera_infos(left_info, right_info)
+            camera = self.rectifier.camera
         else:
             # A D left non-zero on image_rect topics is ignored, as stereo_image_proc's consumers do: P describes them.
             camera = stereo_camera_from_camera_infos(left_info, right_info)
+        self.camera = camera
         self.left_frame = normalize_frame(left_info.header.frame_id)
         return camera
+
+    def same_calibration(self, left_info: Any, right_info: Any) -> bool:
+        """Whether a camera_info pair describes the calibration in use (nothing is built or replaced).
+
+        With ``rectify`` the whole calibration counts (:func:`~selfcontra_ros.rectification.calibration_key`:
+        size, D, K, R, P); without, the rectified camera of the two ``P``.
+
+        Raises:
+            CalibrationError: without ``rectify``, infos that describe no rectified pair.
+        """
+        if self.input.rectify:
+            key = (calibration_key(left_info), calibration_key(right_info))
+            return self.rectifier is not None and key == self.rectifier.key
+        return self.camera is not None and stereo_camera_from_camera_infos(left_info, right_info) == self.camera
 
     def pixels(self, msg: Any, side: str) -> NDArray[np.uint8]:
         """The image of one message: uint8 HxW (grey) or HxWx3 RGB, rectified with ``rectify``.

@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import pytest
 
@@ -287,3 +288,43 @@ def test_options_given_for_a_labelled_bag_replace_only_their_part_of_its_record(
         cli.main(["evaluate-confidence", "--model", "lrd", "--data", str(labelled), "--out", str(out), *options]) == 0
     )
     assert len(json.loads((out / "metrics.json").read_text())["frames"]) == FRAMES
+
+
+def test_rectification_maps_are_built_once_and_the_first_calibration_is_kept(
+    robot_bag: Path, robot_labels: tuple[Path, dict[str, Any]], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """One map build per camera for the whole bag; a calibration changing part way is dropped, not used.
+
+    From the 4th right camera_info on, its distortion differs: the labels stay those of the unchanged
+    bag (the session, the maps and the TF correction keep the first calibration).
+    """
+    changed = tmp_path / "changed"
+    right_info = LAYOUT.topic("right", "camera_info")
+    with open_bag(robot_bag) as bag, BagWriter(changed) as writer:
+        for summary in bag.topics.values():
+            writer.add_topic(summary.name, summary.msgtype)
+        seen = 0
+        for message in bag.messages():
+            if message.topic == right_info:
+                seen += 1
+                if seen >= 4:
+                    message.msg.d = np.asarray(message.msg.d) * 1.5
+            writer.write(message.topic, message.stamp_ns, message.msg)
+    builds: list[int] = []
+    build = cv2.initUndistortRectifyMap
+    monkeypatch.setattr(cv2, "initUndistortRectifyMap", lambda *args: builds.append(1) or build(*args))
+    metrics = label_bag(
+        changed,
+        tmp_path / "out",
+        params_file=FLUSH,
+        progress=False,
+        sync="approximate",
+        slop=0.005,
+        namespace=LAYOUT.namespace,
+        stereo_input=ROBOT_INPUT,
+    )
+    assert len(builds) == 2  # left and right, once
+    assert set(metrics["dropped"]) == {"camera_info_changed"} and metrics["dropped"]["camera_info_changed"] >= 5
+    _, robot = robot_labels
+    assert metrics["frames"] and [f["frame"] for f in metrics["frames"]] == [f["frame"] for f in robot["frames"]]
+    assert metrics["mean"] == robot["mean"]
