@@ -49,6 +49,7 @@ from selfcontra_ros.geometry import StereoCamera
 from selfcontra_ros.odometry.metrics import SHORT_LENGTHS, OdometryMetrics, evaluate_odometry
 from selfcontra_ros.odometry.stereo_vo import FrameQuality, OdometryError, StereoOdometry, VOParams
 from selfcontra_ros.pipeline import write_json
+from selfcontra_ros.ros.conversions import stamp_to_nanoseconds
 
 __all__ = [
     "OnlineOdometry",
@@ -215,15 +216,20 @@ def bag_stereo_frames(
     namespace: str | None = None,
     slop: float = 0.0,
     stereo_input: StereoInput | None = None,
+    dropped: Counter[str] | None = None,
 ) -> tuple[StereoCamera, Iterator[tuple[int, NDArray[np.uint8], NDArray[np.uint8]]]]:
     """The stereo camera of a bag and an iterator over its synchronised ``(stamp_ns, left, right)`` pairs.
 
     Images are paired by header stamp (exactly, or within ``slop`` seconds),
     read as ``stereo_input`` says (remapped names, compressed, rectified;
     see :mod:`selfcontra_ros.bags.stereo_input`); colour images come as RGB.
+    A pair with an image that cannot be used (corrupt compressed data, a bad
+    encoding, a size other than the camera_info's) is skipped: counted in
+    ``dropped`` by :class:`~selfcontra_ros.bags.stereo_input.ImageError` reason,
+    with one warning per reason.
 
     Raises:
-        BagError: missing or corrupt bag, missing topics, an image that cannot be decoded.
+        BagError: missing or corrupt bag, missing topics.
         CalibrationError: camera infos that do not describe a (rectifiable) pair.
     """
     read_as, ns = _bag_input(bag_path, stereo_input, namespace)
@@ -231,6 +237,7 @@ def bag_stereo_frames(
     images = StereoImages(read_as)
     camera = _read_camera(bag_path, topic, images)
     sides = {topic[read_as.left_image]: _LEFT, topic[read_as.right_image]: _RIGHT}
+    skipped: Counter[str] = dropped if dropped is not None else Counter()
 
     def pairs() -> Iterator[tuple[int, NDArray[np.uint8], NDArray[np.uint8]]]:
         sync = StampSynchronizer((_LEFT, _RIGHT), mode="approximate" if slop > 0 else "exact", slop=slop)
@@ -239,13 +246,21 @@ def bag_stereo_frames(
             if missing:
                 raise BagError(f"bag {bag_path} has no {', '.join(missing)}: the odometry needs both images")
             for message in bag.messages(sides):
-                header = message.msg.header.stamp
-                stamp_ns = int(header.sec) * _NS_PER_S + int(header.nanosec)
+                stamp_ns = stamp_to_nanoseconds(message.msg.header.stamp)
                 for match in sync.push(sides[message.topic], stamp_ns, message.msg).matches:
                     try:
                         left, right = images.pixels(match.items[0], _LEFT), images.pixels(match.items[1], _RIGHT)
                     except ImageError as exc:
-                        raise BagError(f"bag {bag_path}: the pair at {match.stamp_ns} ns: {exc}") from exc
+                        if not skipped[exc.reason]:
+                            _LOG.warning(
+                                "bag %s: skipping the pair at %d ns (%s): %s; further ones are only counted",
+                                bag_path,
+                                match.stamp_ns,
+                                exc.reason,
+                                exc,
+                            )
+                        skipped[exc.reason] += 1
+                        continue
                     yield match.stamp_ns, left, right
 
     return camera, pairs()
@@ -315,8 +330,11 @@ def estimate_bag_poses(
     progress: bool = False,
     stereo_input: StereoInput | None = None,
     slop: float = 0.0,
+    dropped: Counter[str] | None = None,
 ) -> tuple[NDArray[np.int64], NDArray[np.float64], list[FrameQuality]]:
     """Estimate the pose of every synchronised stereo pair of a bag.
+
+    Pairs with unusable images are skipped and counted in ``dropped`` (see :func:`bag_stereo_frames`).
 
     Returns:
         (N,) stamps in nanoseconds, (N, 4, 4) poses and the per-frame quality
@@ -326,7 +344,9 @@ def estimate_bag_poses(
         BagError, CalibrationError: see :func:`bag_stereo_frames`.
         OdometryError: no usable frame.
     """
-    camera, pairs = bag_stereo_frames(bag_path, namespace=namespace, stereo_input=stereo_input, slop=slop)
+    camera, pairs = bag_stereo_frames(
+        bag_path, namespace=namespace, stereo_input=stereo_input, slop=slop, dropped=dropped
+    )
     stamps: list[int] = []
 
     def frames() -> Iterator[tuple[float, NDArray[np.uint8], NDArray[np.uint8]]]:
@@ -421,7 +441,8 @@ def odometry_command(
 
     Returns:
         The content of the quality JSON: ``input``, ``frames``, ``reliable_frames``,
-        ``unreliable`` (list of ``{frame, status, message}``), ``runtime_s``,
+        ``unreliable`` (list of ``{frame, status, message}``), ``dropped`` (a bag's stereo
+        pairs skipped for unusable images, reason -> count), ``runtime_s``,
         ``ms_per_frame``, ``metrics`` (None without ground truth) and ``quality`` (per frame).
 
     Raises:
@@ -431,9 +452,16 @@ def odometry_command(
     input_path, out = Path(input_path), Path(out)
     started = time.perf_counter()
     ground_truth = None
+    dropped: Counter[str] = Counter()
     if is_bag(input_path):
         stamps, poses, qualities = estimate_bag_poses(
-            input_path, namespace=namespace, params=params, progress=progress, stereo_input=stereo_input, slop=slop
+            input_path,
+            namespace=namespace,
+            params=params,
+            progress=progress,
+            stereo_input=stereo_input,
+            slop=slop,
+            dropped=dropped,
         )
         if reference_poses:
             ground_truth = bag_reference_poses(input_path, stamps, namespace=namespace, stereo_input=stereo_input)
@@ -457,6 +485,7 @@ def odometry_command(
         "frames": len(qualities),
         "reliable_frames": len(qualities) - len(unreliable),
         "unreliable": unreliable,
+        "dropped": dict(sorted(dropped.items())),
         "runtime_s": runtime,
         "ms_per_frame": 1000.0 * runtime / max(len(qualities), 1),
         "metrics": None if metrics is None else asdict(metrics),
@@ -467,6 +496,8 @@ def odometry_command(
         echo(f"{len(qualities)} frames, {report['reliable_frames']} reliable, {report['ms_per_frame']:.0f} ms/frame")
         for item in unreliable:
             echo(f"  frame {item['frame']}: {item['status']}: {item['message']}")
+        if dropped:
+            echo("skipped stereo pairs: " + ", ".join(f"{k}={v}" for k, v in sorted(dropped.items())))
         if metrics is not None:
             echo("against ground truth: " + metrics.summary())
         echo(f"wrote {out}, {csv_path}, {json_path}")

@@ -25,7 +25,7 @@ from selfcontra_ros.confidence.bag_frames import iter_bag_frames, read_bag_label
 from selfcontra_ros.datasets.kitti import open_sequence
 from selfcontra_ros.datasets.synthetic import write_sequence
 from selfcontra_ros.geometry import invert_pose
-from selfcontra_ros.odometry.run import bag_reference_poses
+from selfcontra_ros.odometry.run import bag_reference_poses, odometry_command
 from selfcontra_ros.ros.conversions import stamp_to_nanoseconds
 
 FRAMES, WIDTH, HEIGHT = 8, 320, 96
@@ -166,8 +166,8 @@ def test_the_labelled_robot_bag_trains_like_it_was_labelled(
         assert np.abs(frame.left.astype(float) - original)[inner].mean() < 4.0
 
 
-def test_a_corrupt_compressed_image_is_dropped_and_counted(robot_bag: Path, tmp_path: Path) -> None:
-    damaged = tmp_path / "damaged"
+def _damaged_copy(robot_bag: Path, damaged: Path) -> Path:
+    """The robot bag with its third left image a JPEG cut short."""
     left = LAYOUT.topic("left", "image_raw") + topics.COMPRESSED_SUFFIX
     with open_bag(robot_bag) as bag, BagWriter(damaged) as writer:
         for summary in bag.topics.values():
@@ -177,8 +177,13 @@ def test_a_corrupt_compressed_image_is_dropped_and_counted(robot_bag: Path, tmp_
             if message.topic == left:
                 seen += 1
                 if seen == 3:
-                    message.msg.data = message.msg.data[:200]  # a JPEG cut short
+                    message.msg.data = message.msg.data[:200]
             writer.write(message.topic, message.stamp_ns, message.msg)
+    return damaged
+
+
+def test_a_corrupt_compressed_image_is_dropped_and_counted(robot_bag: Path, tmp_path: Path) -> None:
+    damaged = _damaged_copy(robot_bag, tmp_path / "damaged")
     metrics = label_bag(
         damaged,
         tmp_path / "out",
@@ -328,3 +333,22 @@ def test_rectification_maps_are_built_once_and_the_first_calibration_is_kept(
     _, robot = robot_labels
     assert metrics["frames"] and [f["frame"] for f in metrics["frames"]] == [f["frame"] for f in robot["frames"]]
     assert metrics["mean"] == robot["mean"]
+
+
+def test_odometry_skips_a_pair_with_a_corrupt_image_and_reports_it(robot_bag: Path, tmp_path: Path) -> None:
+    """One bad compressed image costs the odometry its pair, not the run; the report counts it by reason."""
+    damaged = _damaged_copy(robot_bag, tmp_path / "damaged")
+    lines: list[str] = []
+    report = odometry_command(
+        damaged,
+        tmp_path / "poses.txt",
+        namespace=LAYOUT.namespace,
+        stereo_input=ROBOT_INPUT,
+        slop=0.005,
+        progress=False,
+        echo=lines.append,
+    )
+    assert report["dropped"] == {"bad_compressed_image": 1}
+    assert report["frames"] == FRAMES - 1
+    assert "skipped stereo pairs: bad_compressed_image=1" in lines
+    assert len((tmp_path / "poses.txt").read_text().splitlines()) == FRAMES - 1
