@@ -44,10 +44,12 @@ from numpy.typing import ArrayLike, NDArray
 from selfcontra_ros.bags.sync import PoseBuffer, PoseMiss, matrix_from_pose, validate_pose
 from selfcontra_ros.errors import PoseError, TransformError
 from selfcontra_ros.geometry import invert_pose
+from selfcontra_ros.ros.conversions import stamp_to_nanoseconds
 
 __all__ = [
     "TFBuffer",
     "TransformSource",
+    "matrix_from_transform",
     "normalize_frame",
 ]
 
@@ -81,6 +83,18 @@ class TransformSource(Protocol):
 def normalize_frame(frame_id: str) -> str:
     """A frame id as tf2 stores it: without a leading ``/`` (ROS 1 bags wrote ``/base_link``)."""
     return str(frame_id).strip().lstrip("/")
+
+
+def matrix_from_transform(transform: Any, *, what: str = "transform") -> NDArray[np.float64]:
+    """4x4 matrix of a ``geometry_msgs/Transform`` (``translation`` in metres, unit quaternion ``rotation``).
+
+    Duck-typed: rclpy and rosbags messages alike.
+
+    Raises:
+        PoseError: non-finite numbers or a quaternion far from unit length (``what`` names the input).
+    """
+    pose = SimpleNamespace(position=transform.translation, orientation=transform.rotation)
+    return matrix_from_pose(pose, what=what)
 
 
 def _seconds(stamp_ns: int) -> str:
@@ -197,12 +211,10 @@ class TFBuffer:
         problems: list[str] = []
         for item in msg.transforms:
             parent, child = normalize_frame(item.header.frame_id), normalize_frame(item.child_frame_id)
-            stamp = item.header.stamp
-            stamp_ns = int(stamp.sec) * _NS_PER_S + int(stamp.nanosec)
+            stamp_ns = stamp_to_nanoseconds(item.header.stamp)
             before = self.refused.copy()
             try:
-                pose = SimpleNamespace(position=item.transform.translation, orientation=item.transform.rotation)
-                matrix = matrix_from_pose(pose, what=f"transform {parent} -> {child}")
+                matrix = matrix_from_transform(item.transform, what=f"transform {parent} -> {child}")
             except PoseError as exc:
                 self.refused["bad_transform"] += 1
                 problems.append(str(exc))
@@ -233,6 +245,12 @@ class TFBuffer:
             chain.append(frame)
         return chain
 
+    def _tree(self, frame: str) -> list[str]:
+        """The frames of ``frame``'s tree (those with its root), root first, then sorted."""
+        root = self._ancestors(frame)[-1]
+        members = sorted(f for f in self._links if self._ancestors(f)[-1] == root)
+        return [root, *members]
+
     def _path(self, target: str, source: str) -> tuple[list[str], list[str]]:
         """The frames from ``source`` up to the common ancestor and from ``target`` up to it (ancestor excluded).
 
@@ -240,13 +258,24 @@ class TFBuffer:
             TransformError: a frame is unknown or the two lie in different trees.
         """
         known = self.frames
-        for frame in (target, source):
-            if frame not in known:
-                raise TransformError(
-                    f"no transform from {target} to {source}: frame {frame!r} is unknown "
-                    f"(frames known: {', '.join(known) or 'none yet'})",
-                    "tf_unknown_frame",
-                )
+        unknown = [frame for frame in (target, source) if frame not in known]
+        if len(unknown) == 1:
+            missing = unknown[0]
+            other = source if missing == target else target
+            tree = self._tree(other)
+            leaves = [frame for frame in tree if not any(link.parent == frame for link in self._links.values())]
+            raise TransformError(
+                f"no transform from {target} to {source}: frame {missing!r} is unknown: no transform has child "
+                f"{missing!r} (nor parent); missing link: {leaves[0] if leaves else other} -> {missing} (a transform "
+                f"from a frame of {other}'s tree, {', '.join(tree)}, to {missing}; frames known: {', '.join(known)})",
+                "tf_unknown_frame",
+            )
+        if unknown:
+            raise TransformError(
+                f"no transform from {target} to {source}: frames {target!r} and {source!r} are unknown "
+                f"(frames known: {', '.join(known) or 'none yet'})",
+                "tf_unknown_frame",
+            )
         up_source, up_target = self._ancestors(source), self._ancestors(target)
         common = next((frame for frame in up_source if frame in set(up_target)), None)
         if common is None:

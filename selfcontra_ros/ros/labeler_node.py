@@ -187,7 +187,7 @@ import sys
 import threading
 import time
 from dataclasses import dataclass
-from types import FrameType, SimpleNamespace
+from types import FrameType
 from typing import Any
 
 import numpy as np
@@ -205,8 +205,8 @@ from rclpy.signals import SignalHandlerOptions
 
 from selfcontra_ros.bags import topics
 from selfcontra_ros.bags.stereo_input import IMAGE_TRANSPORTS, ImageError, PoseAt, StereoImages, StereoInput, TFPoses
-from selfcontra_ros.bags.sync import SYNC_MODES, Match, PoseBuffer, StampSynchronizer, matrix_from_pose
-from selfcontra_ros.bags.tf import TransformSource, normalize_frame
+from selfcontra_ros.bags.sync import SYNC_MODES, Match, PoseBuffer, StampSynchronizer
+from selfcontra_ros.bags.tf import TransformSource, matrix_from_transform, normalize_frame
 from selfcontra_ros.confidence.forest import ForestModel
 from selfcontra_ros.confidence.online import ConfidenceFrame, ConfidenceParams, OnlineConfidence, filter_depth
 from selfcontra_ros.config import (
@@ -457,12 +457,8 @@ class Tf2Transforms:
             raise TransformError(
                 f"tf2: no transform from {target} to {source} at {int(stamp_ns) / 1e9:.3f} s: {exc}", self._reason(exc)
             ) from exc
-        transform = msg.transform
         try:
-            return matrix_from_pose(
-                SimpleNamespace(position=transform.translation, orientation=transform.rotation),
-                what=f"tf2 transform {target} -> {source}",
-            )
+            return matrix_from_transform(msg.transform, what=f"tf2 transform {target} -> {source}")
         except PoseError as exc:
             raise TransformError(str(exc), "tf_lookup_failed") from exc
 

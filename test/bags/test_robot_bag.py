@@ -4,6 +4,7 @@ package's own bag of the same sequence (bags/robot_bag.py, stereo_input.py, insp
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -199,8 +200,10 @@ def test_a_corrupt_compressed_image_is_dropped_and_counted(robot_bag: Path, tmp_
     assert len(metrics["frames"]) == FRAMES - 1
 
 
-def test_without_tf_links_the_error_names_them(robot_bag: Path, tmp_path: Path) -> None:
-    """A bag whose /tf_static is missing: every frame dropped, counted by the TF reason."""
+def test_without_tf_links_the_error_names_them(
+    robot_bag: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A bag whose /tf_static is missing: every frame dropped, counted by the TF reason; the log names the link."""
     stripped = tmp_path / "no_static"
     with open_bag(robot_bag) as bag, BagWriter(stripped) as writer:
         kept = [summary for summary in bag.topics.values() if summary.name != topics.TF_STATIC]
@@ -209,10 +212,15 @@ def test_without_tf_links_the_error_names_them(robot_bag: Path, tmp_path: Path) 
         for message in bag.raw_messages([summary.name for summary in kept]):
             writer.write_raw(message.topic, message.stamp_ns, message.data)
     out = tmp_path / "out"
-    metrics = label_bag(
-        stripped, out, params_file=FLUSH, progress=False, sync="approximate", slop=0.005, stereo_input=ROBOT_INPUT
-    )
+    with caplog.at_level(logging.WARNING, logger="selfcontra_ros.bags.label_bag"):
+        metrics = label_bag(
+            stripped, out, params_file=FLUSH, progress=False, sync="approximate", slop=0.005, stereo_input=ROBOT_INPUT
+        )
     assert metrics["dropped"] == {"tf_unknown_frame": FRAMES}
+    warnings = [r.getMessage() for r in caplog.records if "tf_unknown_frame" in r.getMessage()]
+    assert len(warnings) == 1  # once per reason
+    assert f"no transform has child '{LAYOUT.left_frame}'" in warnings[0]
+    assert f"missing link: {LAYOUT.base_frame} -> {LAYOUT.left_frame}" in warnings[0]
 
 
 def test_compressed_package_bags_label_like_raw_ones(

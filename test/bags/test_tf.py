@@ -85,6 +85,10 @@ def test_missing_static_link_names_the_frame() -> None:
     with pytest.raises(TransformError, match=f"frame '{CAMERA}' is unknown.*frames known: base_link, odom") as err:
         tf.lookup("odom", CAMERA, _stamp(0.5))
     assert err.value.reason == "tf_unknown_frame"
+    assert f"no transform has child '{CAMERA}'" in str(err.value)
+    assert f"missing link: base_link -> {CAMERA}" in str(err.value)  # the leaf of odom's tree
+    with pytest.raises(TransformError, match=f"missing link: base_link -> {CAMERA}"):
+        tf.lookup(CAMERA, "odom", _stamp(0.5))  # the unknown frame as the target: the same link
 
 
 def test_missing_dynamic_link_names_the_link() -> None:
