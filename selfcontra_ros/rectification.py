@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 from selfcontra_ros.errors import CalibrationError, ConversionError
 from selfcontra_ros.geometry import StereoCamera
 
-__all__ = ["DISTORTION_MODELS", "Rectifier", "calibration_key"]
+__all__ = ["DISTORTION_MODELS", "Rectifier", "calibration_key", "raw_from_rectified"]
 
 #: Distortion models rectified -> the numbers of coefficients ``D`` may have.
 DISTORTION_MODELS: dict[str, tuple[int, ...]] = {
@@ -66,17 +66,34 @@ def _calibration(info: Any, side: str) -> tuple[NDArray[np.float64], NDArray[np.
             f"{side} camera_info D has {d.size} coefficients {d.tolist()}; "
             f"{model or 'an unset model'} expects {' or '.join(str(n) for n in DISTORTION_MODELS[model])} finite ones"
         )
-    k = _matrix(info, "k", (3, 3), side)
+    return _matrix(info, "k", (3, 3), side), d, _rotation(info, side)
+
+
+def _rotation(info: Any, side: str) -> NDArray[np.float64]:
+    """The rectification rotation ``R`` of one camera_info, checked."""
     r = _matrix(info, "r", (3, 3), side)
     if np.abs(r.T @ r - np.eye(3)).max() > _ROTATION_TOLERANCE or abs(np.linalg.det(r) - 1.0) > _ROTATION_TOLERANCE:
         raise CalibrationError(f"{side} camera_info R is not a rotation: {r.tolist()}")
-    return k, d, r
+    return r
 
 
 def calibration_key(info: Any) -> tuple[Any, ...]:
     """Hashable summary of a camera_info's calibration: rectification maps are rebuilt only when it changes."""
     fields = tuple(tuple(np.asarray(getattr(info, f, ()), dtype=np.float64).reshape(-1).tolist()) for f in "dkrp")
     return (int(info.width), int(info.height), str(getattr(info, "distortion_model", "")), *fields)
+
+
+def raw_from_rectified(left_info: Any) -> NDArray[np.float64]:
+    """4x4 ``T_rawleft_rectleft`` of a raw left camera_info: the rotation ``R^T`` (no translation).
+
+    A pose of the raw optical frame (e.g. from TF) times it is the pose of the rectified left view.
+
+    Raises:
+        CalibrationError: ``R`` is not nine finite numbers forming a rotation.
+    """
+    pose = np.eye(4)
+    pose[:3, :3] = _rotation(left_info, "left").T
+    return pose
 
 
 @dataclass(frozen=True)
@@ -119,21 +136,17 @@ class Rectifier:
             )
         maps = []
         projections = []
-        rotations = []
         for side, info in (("left", left_info), ("right", right_info)):
             k, d, r = _calibration(info, side)
             p = _matrix(info, "p", (3, 4), side)
             first, second = cv2.initUndistortRectifyMap(k, d, r, p[:, :3], (width, height), cv2.CV_16SC2)
             maps.append(_Maps(first, second))
             projections.append(p)
-            rotations.append(r)
         camera = StereoCamera.from_projections(
             projections[0], projections[1], width, height, source="camera_info pair (rectified P)"
         )
-        raw_from_rectified = np.eye(4)
-        raw_from_rectified[:3, :3] = rotations[0].T
         key = (calibration_key(left_info), calibration_key(right_info))
-        return cls(camera, (maps[0], maps[1]), raw_from_rectified, key)
+        return cls(camera, (maps[0], maps[1]), raw_from_rectified(left_info), key)
 
     def rectify(self, image: NDArray[np.uint8], *, right: bool) -> NDArray[np.uint8]:
         """The rectified image of the left or right raw camera (same size and channels, bilinear).

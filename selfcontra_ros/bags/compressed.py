@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from selfcontra_ros.bags.topics import IMAGE_ENCODINGS
 from selfcontra_ros.errors import ConversionError
 
 __all__ = ["IMAGE_FORMATS", "compressed_image_fields", "decode_compressed_image", "parse_format"]
@@ -39,7 +40,6 @@ IMAGE_FORMATS = ("jpeg", "png")
 _ALIASES = {"jpeg": "jpeg", "jpg": "jpeg", "png": "png"}
 #: JPEG quality written (image_transport's default is 95).
 _JPEG_QUALITY = 95
-_ENCODINGS = ("mono8", "rgb8", "bgr8")
 
 
 def parse_format(text: str) -> tuple[str, str | None, str | None]:
@@ -119,8 +119,10 @@ def compressed_image_fields(pixels: NDArray[np.uint8], encoding: str, image_form
         raise ConversionError(
             f"image format {image_format!r} is not supported; expected one of {', '.join(IMAGE_FORMATS)}"
         )
-    if encoding not in _ENCODINGS:
-        raise ConversionError(f"encoding {encoding!r} cannot be compressed; expected one of {', '.join(_ENCODINGS)}")
+    if encoding not in IMAGE_ENCODINGS:
+        raise ConversionError(
+            f"encoding {encoding!r} cannot be compressed; expected one of {', '.join(IMAGE_ENCODINGS)}"
+        )
     array = np.asarray(pixels)
     grey = encoding == "mono8"
     if array.dtype != np.uint8 or array.ndim != (2 if grey else 3) or (not grey and array.shape[2] != 3):

@@ -41,7 +41,6 @@ __all__ = ["BagReport", "StereoPair", "format_report", "inspect_bag", "suggest_c
 
 _NS_PER_S = 1_000_000_000
 _IMAGE_TYPES = (topics.IMAGE_TYPE, topics.COMPRESSED_IMAGE_TYPE)
-_POSE_TYPES = (topics.POSE_TYPE, "nav_msgs/msg/Odometry")
 #: Name pairs that tell a left camera from a right one.
 _SIDES = (("left", "right"), ("infra1", "infra2"), ("cam0", "cam1"))
 #: Image headers compared per camera for the stamp offset.
@@ -144,7 +143,7 @@ def inspect_bag(path: Path | str) -> BagReport:
                 max_stamp_offset_s=max(offsets) / _NS_PER_S if offsets else None,
             )
         )
-    poses = sorted(t for t, s in summaries.items() if s.msgtype in _POSE_TYPES)
+    poses = sorted(t for t, s in summaries.items() if s.msgtype in topics.POSE_TYPES)
     tf_links = sorted((parent, child, static) for (parent, child), static in links.items())
     return BagReport(path, rows, pairs, tf_links, poses, duration_s)
 

@@ -108,6 +108,8 @@ from selfcontra_ros.bags.reader import Bag, BagError, open_bag
 from selfcontra_ros.bags.stereo_input import (
     CUSTOM_DATA_KEY,
     IMAGE_ENCODINGS,
+    NAMESPACE_KEY,
+    SYNC_KEY,
     ImageError,
     StereoImages,
     StereoInput,
@@ -137,9 +139,9 @@ __all__ = ["IMAGE_ENCODINGS", "ODOMETRY_TYPE", "POSE_TYPES", "label_bag", "metri
 _LOG = logging.getLogger(__name__)
 _NS_PER_S = 1_000_000_000
 
-ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
+ODOMETRY_TYPE = topics.ODOMETRY_TYPE
 #: Message types accepted on the pose topic.
-POSE_TYPES = (topics.POSE_TYPE, ODOMETRY_TYPE)
+POSE_TYPES = topics.POSE_TYPES
 #: Output topics (relative) that the input bag must not hold already.
 _OUTPUTS = (
     topics.LABELS,
@@ -645,9 +647,9 @@ def label_bag(
         out_bag.parent.mkdir(parents=True, exist_ok=True)
         custom = {
             "selfcontra.labelled_from": str(in_bag.resolve()),
-            "selfcontra.namespace": ns,
+            NAMESPACE_KEY: ns,
             CUSTOM_DATA_KEY: stereo_input.to_json(),
-            "selfcontra.sync": json.dumps({"mode": sync, "slop": slop}),
+            SYNC_KEY: json.dumps({"mode": sync, "slop": slop}),
         }
         status = "failed"
         run: _BagLabeler | None = None

@@ -52,8 +52,10 @@ __all__ = [
     "CUSTOM_DATA_KEY",
     "IMAGE_ENCODINGS",
     "IMAGE_TRANSPORTS",
+    "NAMESPACE_KEY",
     "POSE_SOURCES",
     "REMAPPABLE",
+    "SYNC_KEY",
     "ImageError",
     "PoseAt",
     "PoseSource",
@@ -90,9 +92,13 @@ REMAPPABLE = (
 )
 _TF_NAMES = {"tf": topics.TF, "tf_static": topics.TF_STATIC}
 #: Raw image encodings read (``bgr8`` is reordered to RGB).
-IMAGE_ENCODINGS = ("mono8", "rgb8", "bgr8")
+IMAGE_ENCODINGS = topics.IMAGE_ENCODINGS
 #: ``metadata.yaml`` custom_data key of the input description in bags written by the bag labeler.
 CUSTOM_DATA_KEY = "selfcontra.input"
+#: custom_data key of the stereo namespace the bag labeler read.
+NAMESPACE_KEY = "selfcontra.namespace"
+#: custom_data key of the bag labeler's image pairing, JSON ``{"mode", "slop"}``.
+SYNC_KEY = "selfcontra.sync"
 
 
 def parse_remaps(remaps: Iterable[str]) -> dict[str, str]:

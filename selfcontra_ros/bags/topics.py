@@ -29,6 +29,7 @@ __all__ = [
     "DISPARITY",
     "DISPARITY_TYPE",
     "GT_DISPARITY",
+    "IMAGE_ENCODINGS",
     "IMAGE_TYPE",
     "INPUT_TOPICS",
     "LABELS",
@@ -37,8 +38,10 @@ __all__ = [
     "LEFT_IMAGE",
     "LEFT_INFO",
     "LEFT_RAW",
+    "ODOMETRY_TYPE",
     "POSE",
     "POSE_TYPE",
+    "POSE_TYPES",
     "RIGHT_FRAME",
     "RIGHT_IMAGE",
     "RIGHT_INFO",
@@ -60,6 +63,11 @@ DISPARITY_TYPE = "stereo_msgs/msg/DisparityImage"
 CLOCK_TYPE = "rosgraph_msgs/msg/Clock"
 COMPRESSED_IMAGE_TYPE = "sensor_msgs/msg/CompressedImage"
 TF_TYPE = "tf2_msgs/msg/TFMessage"
+ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
+#: Message types read as the left camera's pose.
+POSE_TYPES = (POSE_TYPE, ODOMETRY_TYPE)
+#: ``sensor_msgs/Image`` encodings of the stereo images read and compressed (``bgr8`` is reordered to RGB).
+IMAGE_ENCODINGS = ("mono8", "rgb8", "bgr8")
 
 # --------------------------------------------------------------------------- inputs of the labeler (relative names)
 

@@ -43,7 +43,7 @@ from numpy.typing import NDArray
 
 from selfcontra_ros.bags import topics
 from selfcontra_ros.bags.reader import Bag, BagError, is_bag, open_bag
-from selfcontra_ros.bags.stereo_input import ImageError, StereoImages, StereoInput
+from selfcontra_ros.bags.stereo_input import NAMESPACE_KEY, SYNC_KEY, ImageError, StereoImages, StereoInput
 from selfcontra_ros.bags.sync import StampSynchronizer
 from selfcontra_ros.datasets.kitti import StereoFrame
 from selfcontra_ros.errors import CalibrationError, ConversionError, SelfContraError
@@ -58,8 +58,6 @@ _LOG = logging.getLogger(__name__)
 _NS_PER_S = 1_000_000_000
 #: How long (log time) a frame waits for its ground truth after its stamp, nanoseconds; as label_bag's pose wait.
 _GT_WAIT_NS = _NS_PER_S // 2
-#: ``metadata.yaml`` custom_data keys written by the bag labeler.
-_NAMESPACE_KEY, _SYNC_KEY = "selfcontra.namespace", "selfcontra.sync"
 
 
 @dataclass
@@ -74,8 +72,8 @@ class BagFrame(StereoFrame):
 
 def _namespace(bag: Bag, stereo_input: StereoInput, namespace: str | None) -> str:
     """``namespace``, else the one the bag labeler recorded, else found from the left image topic."""
-    if namespace is None and _NAMESPACE_KEY in bag.custom_data:
-        namespace = bag.custom_data[_NAMESPACE_KEY]
+    if namespace is None and NAMESPACE_KEY in bag.custom_data:
+        namespace = bag.custom_data[NAMESPACE_KEY]
     return stereo_input.namespace(list(bag.topics), namespace)
 
 
@@ -92,13 +90,13 @@ def _sync(bag: Bag, slop_s: float | None = None) -> StampSynchronizer:
             raise SelfContraError(f"slop must be a finite number of seconds >= 0, got {slop_s!r}")
         return StampSynchronizer(("left", "right"), mode="approximate" if slop_s > 0 else "exact", slop=slop_s)
     mode, slop = "exact", 0.0
-    text = bag.custom_data.get(_SYNC_KEY)
+    text = bag.custom_data.get(SYNC_KEY)
     if text:
         try:
             stored = json.loads(text)
             mode, slop = str(stored["mode"]), float(stored["slop"])
         except (ValueError, KeyError, TypeError) as exc:
-            raise BagError(f"bag {bag.path}: custom_data {_SYNC_KEY} {text!r} is unreadable: {exc}") from exc
+            raise BagError(f"bag {bag.path}: custom_data {SYNC_KEY} {text!r} is unreadable: {exc}") from exc
     return StampSynchronizer(("left", "right"), mode=mode, slop=slop)
 
 

@@ -107,15 +107,16 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.task import Future
 
 from selfcontra_ros.bags import topics
-from selfcontra_ros.bags.reader import Bag, BagError, RawMessage, open_bag
+from selfcontra_ros.bags.messages import MessageBuilder
+from selfcontra_ros.bags.reader import Bag, BagError, RawMessage, default_typestore, open_bag
 from selfcontra_ros.bags.stereo_input import IMAGE_TRANSPORTS, PoseAt, StereoInput, TFPoses
 from selfcontra_ros.bags.tf import TFBuffer
 from selfcontra_ros.errors import SelfContraError
-from selfcontra_ros.geometry import quaternion_from_rotation
-from selfcontra_ros.ros.conversions import nanoseconds_to_stamp, stamp_to_nanoseconds
+from selfcontra_ros.rectification import raw_from_rectified
+from selfcontra_ros.ros.conversions import stamp_to_nanoseconds
 from selfcontra_ros.ros.environment import prepare_ros_environment
 
-__all__ = ["PLAYER_POSE_SOURCES", "BagTFPoses", "PlayerConfigError", "PlayerNode", "main"]
+__all__ = ["PLAYER_POSE_SOURCES", "BagTFPoses", "PlayerConfigError", "PlayerNode", "PoseMessages", "main"]
 
 NODE_NAME = "player"
 _NS_PER_S = 1_000_000_000
@@ -212,10 +213,9 @@ class BagTFPoses:
         if topic in (self.tf_topic, self.tf_static_topic):
             self.tf.add_message(msg, static=topic == self.tf_static_topic)  # refusals are counted in tf.refused
         elif topic == self.left_info:
-            raw_from_rectified = np.eye(4)
-            if self.input.rectify:  # the rectified left view: Rectifier.raw_from_rectified, from R alone
-                raw_from_rectified[:3, :3] = np.asarray(msg.r, dtype=np.float64).reshape(3, 3).T
-            self.poses.set_camera(str(msg.header.frame_id), raw_from_rectified)
+            # The rectified left view: Rectifier.raw_from_rectified, from R alone (no maps needed here).
+            correction = raw_from_rectified(msg) if self.input.rectify else np.eye(4)
+            self.poses.set_camera(str(msg.header.frame_id), correction)
         elif topic == self.left_image:
             self._waiting.append(stamp_to_nanoseconds(msg.header.stamp))
         return self._decide(log_ns)
@@ -239,17 +239,20 @@ class BagTFPoses:
         return decided
 
 
-def pose_stamped(pose: NDArray[np.float64], stamp_ns: int, frame_id: str) -> Any:
-    """A ``geometry_msgs/PoseStamped`` of a 4x4 pose (metres; rotation as a unit quaternion x, y, z, w)."""
-    from geometry_msgs.msg import PoseStamped
+class PoseMessages:
+    """Serialised ``geometry_msgs/PoseStamped`` of 4x4 poses, built by the bags' own MessageBuilder.
 
-    msg = PoseStamped()
-    msg.header.stamp = nanoseconds_to_stamp(stamp_ns)
-    msg.header.frame_id = frame_id
-    msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = (float(v) for v in pose[:3, 3])
-    o = msg.pose.orientation
-    o.x, o.y, o.z, o.w = (float(v) for v in quaternion_from_rotation(pose[:3, :3]))
-    return msg
+    The player publishes them as raw CDR, as it publishes the bag's messages.
+    """
+
+    def __init__(self) -> None:
+        self._typestore = default_typestore()
+        self._make = MessageBuilder(self._typestore)
+
+    def pose_stamped(self, pose: NDArray[np.float64], stamp_ns: int, frame_id: str) -> bytes:
+        """CDR bytes of the PoseStamped of ``pose`` (metres; rotation as a unit quaternion x, y, z, w)."""
+        msg = self._make.pose_stamped(pose, stamp_ns, frame_id)
+        return bytes(self._typestore.serialize_cdr(msg, topics.POSE_TYPE))
 
 
 class PlayerNode(Node):
@@ -321,6 +324,7 @@ class PlayerNode(Node):
         if not self._publishers_by_topic:
             raise PlayerConfigError(f"bag {bag_path} has no topic this ROS installation can publish")
         self._tf_poses: BagTFPoses | None = None
+        self._pose_messages: PoseMessages | None = None
         self._pose_publisher: Publisher | None = None
         self._pose_topic = ""
         self.pose_misses: Counter[str] = Counter()
@@ -501,6 +505,7 @@ class PlayerNode(Node):
                 "(pose_source none) or move the TF pose elsewhere (remaps pose:=...)"
             )
         self._tf_poses = tf_poses
+        self._pose_messages = PoseMessages()
         self._pose_publisher = self.create_publisher(PoseStamped, self._pose_topic.lstrip("/"), qos)
         self.get_logger().info(
             f"TF to pose: {stereo_input.camera_frame or 'the left camera_info frame'} in {stereo_input.world_frame} "
@@ -619,7 +624,7 @@ class PlayerNode(Node):
         self._publish_poses(decided)
 
     def _publish_poses(self, decided: list[tuple[int, PoseAt]]) -> None:
-        assert self._tf_poses is not None and self._pose_publisher is not None
+        assert self._tf_poses is not None and self._pose_publisher is not None and self._pose_messages is not None
         world = self._tf_poses.poses.world_frame
         for stamp_ns, found in decided:
             if found.pose is None:
@@ -629,7 +634,7 @@ class PlayerNode(Node):
                     reason, f"no pose for the left image at {stamp_ns} ns ({reason}): {found.detail} (further: counted)"
                 )
                 continue
-            self._pose_publisher.publish(pose_stamped(found.pose, stamp_ns, world))
+            self._pose_publisher.publish(self._pose_messages.pose_stamped(found.pose, stamp_ns, world))
             self.counts[self._pose_topic] += 1
 
     def _log_summary(self) -> None:

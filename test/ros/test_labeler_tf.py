@@ -442,3 +442,19 @@ def test_player_tf_poses_compose_tf_at_each_left_image_stamp(rectify: bool) -> N
     poses.reset()  # a new pass (loop): the old TF is gone, so the camera frame is unknown until its camera_info
     assert poses.add(poses.left_image, 100 * MS, image) == []
     assert poses.finish()[0][1].reason == "no_camera_frame"
+
+
+def test_player_pose_messages_are_the_bags_pose_stamped_in_cdr() -> None:
+    """The player's TF poses go out as the CDR of MessageBuilder's PoseStamped: they read back as the pose."""
+    from selfcontra_ros.bags import topics
+    from selfcontra_ros.bags.reader import default_typestore
+    from selfcontra_ros.bags.sync import matrix_from_pose
+    from selfcontra_ros.ros.player_node import PoseMessages
+
+    pose = _rigid((0.3, -1.0, 0.2), 40.0, (1.5, -2.0, 0.25))
+    data = PoseMessages().pose_stamped(pose, 1_700_000_000_123_456_789, "odom")
+    assert isinstance(data, bytes)
+    msg = default_typestore().deserialize_cdr(data, topics.POSE_TYPE)
+    assert msg.header.frame_id == "odom"
+    assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == (1_700_000_000, 123_456_789)
+    np.testing.assert_allclose(matrix_from_pose(msg.pose), pose, atol=1e-12)
