@@ -9,7 +9,8 @@ the first image headers and the TF messages, which it decodes) and reports
   ``CompressedImage`` on ``.../compressed``) whose names differ only in
   ``left``/``right`` (also ``infra1``/``infra2``, ``cam0``/``cam1``), each with
   its ``camera_info`` (``<image topic's folder>/camera_info``), whether it
-  looks raw (``image_raw`` with a non-zero distortion: rectify it) or
+  looks raw (``raw`` but not ``rect`` in the name, with a non-zero
+  distortion: rectify it; RealSense's ``image_rect_raw`` is rectified) or
   rectified, and how far apart the two cameras' stamps are;
 * the TF frames (``/tf`` and ``/tf_static``), parent -> child, static or not;
 * pose topics (PoseStamped, Odometry).
@@ -129,7 +130,9 @@ def inspect_bag(path: Path | str) -> BagReport:
         left_info, right_info = (t if t in info_topics else None for t in infos_of)
         info = infos.get(left_info) if left_info else None
         distorted = info is not None and bool(np.any(np.asarray(info.d, dtype=float)))
-        raw = "raw" in posixpath.basename(_base(left)) and (distorted or info is None)
+        # image_rect_raw (RealSense) is rectified: "raw" there means unprocessed colour, not distorted.
+        name = posixpath.basename(_base(left))
+        raw = "raw" in name and "rect" not in name and (distorted or info is None)
         offsets = [abs(a - b) for a, b in zip(stamps[left], stamps[right], strict=False)]
         pairs.append(
             StereoPair(
