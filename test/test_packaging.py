@@ -18,7 +18,8 @@ def test_package_xml_validates_with_catkin_pkg() -> None:
     assert package.package_format == 3
     assert package.get_build_type() == "ament_python"
     exec_depends = {dep.name for dep in package.exec_depends}
-    for needed in ("rclpy", "sensor_msgs", "stereo_msgs", "geometry_msgs", "nav_msgs", "std_msgs"):
+    ros_packages = ("rclpy", "sensor_msgs", "stereo_msgs", "geometry_msgs", "nav_msgs", "std_msgs")
+    for needed in (*ros_packages, "tf2_ros_py", "tf2_msgs"):  # tf2: pose_source tf
         assert needed in exec_depends
 
 
