@@ -143,14 +143,7 @@ ODOMETRY_TYPE = topics.ODOMETRY_TYPE
 #: Message types accepted on the pose topic.
 POSE_TYPES = topics.POSE_TYPES
 #: Output topics (relative) that the input bag must not hold already.
-_OUTPUTS = (
-    topics.LABELS,
-    topics.LABELS_COLOR,
-    topics.DEPTH,
-    topics.DISPARITY,
-    topics.CONFIDENCE,
-    topics.DEPTH_FILTERED,
-)
+_OUTPUTS = topics.OUTPUT_TOPICS
 #: Disparity resolution of OpenCV's block matchers (4 fractional bits), pixels.
 _OPENCV_DELTA_D = 1.0 / 16.0
 

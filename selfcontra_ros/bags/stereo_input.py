@@ -81,12 +81,7 @@ REMAPPABLE = (
     topics.RIGHT_INFO,
     topics.POSE,
     topics.GT_DISPARITY,
-    topics.LABELS,
-    topics.LABELS_COLOR,
-    topics.DEPTH,
-    topics.DISPARITY,
-    topics.CONFIDENCE,
-    topics.DEPTH_FILTERED,
+    *topics.OUTPUT_TOPICS,
     "tf",
     "tf_static",
 )

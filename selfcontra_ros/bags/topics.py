@@ -39,6 +39,7 @@ __all__ = [
     "LEFT_INFO",
     "LEFT_RAW",
     "ODOMETRY_TYPE",
+    "OUTPUT_TOPICS",
     "POSE",
     "POSE_TYPE",
     "POSE_TYPES",
@@ -109,6 +110,9 @@ CONFIDENCE = "confidence"  # 32FC1 in [0, 1]
 DEPTH = "depth"  # 32FC1 metres (REP 118)
 DEPTH_FILTERED = "depth/filtered"  # 32FC1, NaN where confidence < threshold
 DISPARITY = "disparity"  # stereo_msgs/DisparityImage of the query algorithm
+
+#: The labeler's outputs (relative names), as it publishes them and as labelled bags store them.
+OUTPUT_TOPICS = (LABELS, LABELS_COLOR, DEPTH, DISPARITY, CONFIDENCE, DEPTH_FILTERED)
 
 #: Simulated time (absolute: ROS nodes with ``use_sim_time`` listen on exactly this name).
 CLOCK = "/clock"
