@@ -102,7 +102,7 @@ def _reference_votes(
     negatives_from_any: bool,
     free_space: bool,
     free_space_neighbourhood: int,
-    splat_ref: View | None = None,
+    splat_bits: NDArray[np.uint64] | None = None,
 ) -> None:
     """Add the vote (if any) of one reference view to every valid query pixel, in place (flat ``(H*W,)``).
 
@@ -111,7 +111,8 @@ def _reference_votes(
     passes: the lookup (:func:`selfcontra_ros.stages.kernels.lookup_votes_kernel`), then, for the pixels it left
     undecided, the z-buffer splat of the supported reference points
     (:func:`selfcontra_ros.stages.kernels.splat_supported_kernel`) and the free-space test
-    (:func:`selfcontra_ros.stages.kernels.free_space_votes_kernel`).
+    (:func:`selfcontra_ros.stages.kernels.free_space_votes_kernel`). ``splat_bits`` (default the reference's
+    ``support_bits``) are the support the splat and its votes use: zero leaves a reference point out.
     """
     ref_from_query = ref.from_view(query)
     query_from_ref = query.from_view(ref)
@@ -146,10 +147,10 @@ def _reference_votes(
     )
     if not free_space:
         return
-    if splat_ref is not None:
-        ref = splat_ref
+    # The splat's voters: the reference's support unless the caller leaves more of its points out.
+    bits = ref.support_bits if splat_bits is None else splat_bits
     # The z-buffer only for the pixels the lookup left undecided.
-    source = kernels.splat_supported_kernel(ref.points, ref.valid, ref.support_bits, query_from_ref, pending, *geometry)
+    source = kernels.splat_supported_kernel(ref.points, ref.valid, bits, query_from_ref, pending, *geometry)
     kernels.free_space_votes_kernel(
         vote_sum,
         voted,
@@ -160,7 +161,7 @@ def _reference_votes(
         query.u,
         ref.points,
         ref.u,
-        ref.support_bits,
+        bits,
         ref_from_query,
         query_from_ref,
         camera.width,
@@ -292,10 +293,10 @@ def consistency_voting(
         gated = ref
         if not ref.reliable[ref.valid].all():
             gated = dataclasses.replace(ref, support_bits=np.where(ref.reliable, ref.support_bits, np.uint64(0)))
-        splat_ref = None
+        splat_bits = None
         if free_space_band and edge_jump_px > 0:
             band = view_band(ref, camera, edge_jump_px, edge_occluded_side_px, edge_other_px)
-            splat_ref = dataclasses.replace(gated, support_bits=np.where(band, np.uint64(0), gated.support_bits))
+            splat_bits = np.where(band, np.uint64(0), gated.support_bits)
         _reference_votes(
             full_sum,
             full_voted,
@@ -311,7 +312,7 @@ def consistency_voting(
             negatives_from_any=negative_voters == "any",
             free_space=free_space_votes,
             free_space_neighbourhood=free_space_neighbourhood,
-            splat_ref=splat_ref,
+            splat_bits=splat_bits,
         )
     labels = np.full(n, UNKNOWN, dtype=np.uint8)
     positive = full_voted & (full_sum > 0)
