@@ -294,7 +294,6 @@ class StereoImages:
         self.input = stereo_input
         self.rectifier: Rectifier | None = None
         self.camera: StereoCamera | None = None
-        self.left_frame: str | None = None
 
     @property
     def raw_from_rectified(self) -> NDArray[np.float64]:
@@ -318,7 +317,6 @@ class StereoImages:
             # A D left non-zero on image_rect topics is ignored, as stereo_image_proc's consumers do: P describes them.
             camera = stereo_camera_from_camera_infos(left_info, right_info)
         self.camera = camera
-        self.left_frame = normalize_frame(left_info.header.frame_id)
         return camera
 
     def same_calibration(self, left_info: Any, right_info: Any) -> bool:

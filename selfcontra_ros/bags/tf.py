@@ -232,11 +232,6 @@ class TFBuffer:
         """Every frame the buffer knows (as a child or a parent), sorted."""
         return sorted(set(self._links) | {link.parent for link in self._links.values()})
 
-    def parent(self, frame: str) -> str | None:
-        """The parent of ``frame``, or None for a root or an unknown frame."""
-        link = self._links.get(normalize_frame(frame))
-        return None if link is None else link.parent
-
     def _ancestors(self, frame: str) -> list[str]:
         """``frame`` and its ancestors up to the root, nearest first."""
         chain = [frame]
