@@ -11,6 +11,8 @@ STAMP := $(VENV)/.installed
 # own. Tests give every test its own ROS_DOMAIN_ID on top of this.
 export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 export ROS_DOMAIN_ID ?= 73
+# Ray (the [cluster] extra, `selfcontra batch`) reports usage statistics to the internet unless told not to.
+export RAY_USAGE_STATS_ENABLED := 0
 
 .PHONY: all venv venv-jazzy test test-jazzy lint typecheck unit demo bags clean
 
@@ -29,7 +31,7 @@ $(STAMP): setup.py setup.cfg constraints.txt
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(call drop_plain_opencv,$(BIN))
-	$(BIN)/python -m pip install --quiet --no-compile -c constraints.txt -e ".[ros,dev]"
+	$(BIN)/python -m pip install --quiet --no-compile -c constraints.txt -e ".[ros,dev,cluster]"
 	$(BIN)/python -m pip check
 	@touch $(STAMP)
 

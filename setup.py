@@ -56,6 +56,8 @@ setup(
         # distribution names (ros-rclpy 9.x vs 7.x) and cannot be mixed.
         "ros": [f"ros-{name}" for name in ROS_PACKAGES],  # Kilted
         "ros-jazzy": [f"ros-jazzy-{name}" for name in ROS_PACKAGES],
+        # `selfcontra batch` on a Ray cluster (local by default); without it the batch runs sequentially.
+        "cluster": ["ray>=2.40"],
         "dev": [
             "pytest",
             "pytest-timeout",
