@@ -21,6 +21,14 @@ Three scenes:
   disparity range at times. The camera yaws, pitches and rolls as it flies
   (about 0.1 m per frame), and its baseline is a MAV's (0.12-0.2 m, drawn per
   seed), not KITTI's.
+- ``highway``: a long straight motorway, three lanes each way, driven at
+  25-35 m/s (2.5-3.5 m per frame at 10 Hz, speeding up); dashed lane lines,
+  guard rails on posts beside the hard shoulder and in the median, sparse
+  far structure (trees, wooded hills, a few distant buildings), and traffic:
+  trucks being overtaken, cars overtaking, cars ahead at about the camera's
+  own speed and oncoming cars. Vehicles are the only primitives that move
+  (see :meth:`SyntheticScene.primitives_at`); both cameras of a frame see
+  them at the same instant, and their texture moves with them.
 
 World coordinates of the written poses are those of the left camera at frame
 0 (KITTI odometry convention); inside a scene, primitives live in a scene
@@ -30,7 +38,7 @@ frame with y pointing down and the ground at ``y = ground``.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -78,6 +86,7 @@ _KITTI_BASELINE = 0.5372
 
 # Material codes: which texture function colours a primitive.
 _ROAD, _PAVING, _FACADE, _CAR, _POLE, _OBJECT, _GRASS, _TILES, _PLASTER, _OUTSIDE, _WOOD = range(11)
+_MOTORWAY, _RAIL, _FOLIAGE = range(11, 14)
 _N_PARAMS = 8
 
 # Direction towards the light (y down: from above, front left); Lambertian plus ambient.
@@ -129,6 +138,8 @@ class SyntheticFrame:
         disparity: HxW float32 left disparity ``fx * b / z`` in pixels; NaN where no ground truth.
         pose: 4x4 float64 ``T_world_left``, world = left camera at frame 0.
         camera: the rectified stereo camera.
+        moving: HxW bool, left pixels that see a moving primitive (a vehicle
+            of the highway); None in scenes where nothing moves.
     """
 
     index: int
@@ -139,6 +150,7 @@ class SyntheticFrame:
     disparity: F32
     pose: F64
     camera: StereoCamera
+    moving: NDArray[np.bool_] | None = None
 
 
 def _rotation(yaw: float, pitch: float = 0.0, roll: float = 0.0) -> F64:
@@ -280,6 +292,47 @@ def _tex_wood(p: F64, n: F64, fp: F64, prm: F64, noise: ValueNoise) -> F64:
     return np.clip(albedo * (1.0 + amp * noise.fbm(stretched, fp * 3.0, 2.0, 5, gain=0.75)), 0.0, 1.0)
 
 
+# Motorway layout across the road (scene x, metres; the camera's lane is centred on x = 0, y down).
+_MW_LANE = 3.75
+_MW_EDGE_RIGHT = 1.5 * _MW_LANE  # solid line between the right lane and the hard shoulder
+_MW_EDGE_LEFT = -1.5 * _MW_LANE  # solid line beside the median
+_MW_SHOULDER = 3.0
+_MW_MEDIAN = 3.0  # between the two carriageways' inner edge lines
+_MW_ONCOMING = _MW_EDGE_LEFT - _MW_MEDIAN  # inner edge line of the oncoming carriageway
+_MW_DASH = (18.0, 6.0 / 18.0)  # lane-line period (m) and duty: 6 m lines, 12 m gaps
+
+
+def _tex_motorway(p: F64, n: F64, fp: F64, prm: F64, noise: ValueNoise) -> F64:
+    """Motorway ground: asphalt with dashed lane lines and solid edge lines, a grass median and verges."""
+    x, z = p[0], p[2]
+    albedo = 0.28 + 0.2 * noise.fbm(p, fp, 0.25, 8, gain=0.85)
+    dash = pulse(z, _MW_DASH[0], _MW_DASH[1], fp)
+    lines = np.zeros_like(x)
+    for centre in (-0.5 * _MW_LANE, 0.5 * _MW_LANE, _MW_ONCOMING - _MW_LANE, _MW_ONCOMING - 2 * _MW_LANE):
+        lines += _line(x, centre, 0.15, fp) * dash
+    for centre in (_MW_EDGE_RIGHT, _MW_EDGE_LEFT, _MW_ONCOMING, _MW_ONCOMING - 3 * _MW_LANE):
+        lines += _line(x, centre, 0.25, fp)
+    albedo += np.clip(lines, 0.0, 1.0) * (0.8 - albedo)
+    far_right = _MW_EDGE_RIGHT + _MW_SHOULDER
+    far_left = _MW_ONCOMING - 3 * _MW_LANE - _MW_SHOULDER
+    grass = (x > far_right) | (x < far_left) | ((x < _MW_EDGE_LEFT - 0.6) & (x > _MW_ONCOMING + 0.6))
+    if grass.any():
+        albedo[grass] = _tex_grass(p[:, grass], n[:, grass], fp[grass], prm[:, grass], noise)
+    return albedo.astype(np.float64)
+
+
+def _tex_rail(p: F64, n: F64, fp: F64, prm: F64, noise: ValueNoise) -> F64:
+    """Galvanised guard rail or post: light metal, two horizontal grooves, weathering. params: albedo."""
+    base = prm[0] * (1.0 + 0.12 * noise.fbm(p, fp, 0.8, 6, gain=0.8))
+    grooves = pulse(p[1], 0.1, 0.3, fp)
+    return np.clip(base * (1.0 - 0.3 * grooves), 0.0, 1.0)
+
+
+def _tex_foliage(p: F64, n: F64, fp: F64, prm: F64, noise: ValueNoise) -> F64:
+    """Tree crowns and wooded hills: dark, strongly varying noise. params: albedo."""
+    return np.clip(prm[0] * (1.0 + 0.5 * noise.fbm(p, fp, 0.6, 9, gain=0.85)), 0.0, 1.0)
+
+
 _TEXTURES: dict[int, _Texture] = {
     _ROAD: _tex_road,
     _PAVING: _tex_paving,
@@ -292,6 +345,9 @@ _TEXTURES: dict[int, _Texture] = {
     _PLASTER: _tex_plaster,
     _OUTSIDE: _tex_outside,
     _WOOD: _tex_wood,
+    _MOTORWAY: _tex_motorway,
+    _RAIL: _tex_rail,
+    _FOLIAGE: _tex_foliage,
 }
 
 
@@ -299,15 +355,18 @@ _TEXTURES: dict[int, _Texture] = {
 
 
 class SyntheticScene:
-    """A static scene of primitives and a camera trajectory; renders exact stereo ground truth.
+    """A scene of primitives and a camera trajectory; renders exact stereo ground truth.
 
     Args:
         name: scene name (one of :data:`SCENES`).
         seed: the seed it was built from (recorded; noise streams derive from it).
         camera: the rectified stereo camera.
-        primitives: the scene's primitives, scene frame (y down).
+        primitives: the scene's primitives, scene frame (y down), as at frame 0.
         trajectory: maps frame indices (K,) to K 4x4 ``T_scene_left`` poses.
         noise: solid noise of the textures.
+        motion: for a scene with moving primitives (boxes only), maps a frame
+            index to the (len(primitives), 3) translation of every primitive
+            since frame 0, metres (zero rows for static ones); None: all static.
     """
 
     def __init__(
@@ -318,6 +377,7 @@ class SyntheticScene:
         primitives: list[Primitive],
         trajectory: Callable[[NDArray[np.int64]], F64],
         noise: ValueNoise,
+        motion: Callable[[int], F64] | None = None,
     ) -> None:
         self.name = name
         self.seed = seed
@@ -331,6 +391,41 @@ class SyntheticScene:
             params[i, : len(prim.params)] = prim.params
         self._params = params
         self._origin_inv = invert_pose(trajectory(np.zeros(1, dtype=np.int64))[0])
+        self._motion = motion
+        if motion is not None:
+            moved = np.any(motion(0) != 0.0, axis=1) | np.any(motion(1) != 0.0, axis=1)
+            self._movers = np.flatnonzero(moved)
+            if not all(isinstance(primitives[i], Box) for i in self._movers):
+                raise DatasetError(f"scene {name!r}: only boxes can move")
+
+    def _offsets(self, index: int) -> F64 | None:
+        """(len(primitives), 3) translations of the primitives at frame ``index``, or None when nothing moves."""
+        if self._motion is None:
+            return None
+        offsets = np.asarray(self._motion(int(index)), dtype=np.float64)
+        if offsets.shape != (len(self.primitives), 3):
+            raise DatasetError(
+                f"scene {self.name!r}: motion gives {offsets.shape}, expected ({len(self.primitives)}, 3)"
+            )
+        return offsets
+
+    def primitives_at(self, index: int) -> list[Primitive]:
+        """The primitives as they stand at frame ``index`` (the moving ones translated; the list itself if static)."""
+        offsets = self._offsets(index)
+        if offsets is None:
+            return self.primitives
+        prims = list(self.primitives)
+        for i in self._movers:
+            box = prims[i]
+            assert isinstance(box, Box)
+            x, y, z = (float(c) for c in np.asarray(box.center) + offsets[i])
+            prims[i] = replace(box, center=(x, y, z))
+        return prims
+
+    @property
+    def moving_primitives(self) -> NDArray[np.int64]:
+        """Indices (into :attr:`primitives`) of the primitives that move; empty in a static scene."""
+        return self._movers if self._motion is not None else np.zeros(0, dtype=np.int64)
 
     def scene_pose(self, index: int) -> F64:
         """4x4 ``T_scene_left`` of frame ``index`` (scene frame, y down)."""
@@ -346,20 +441,35 @@ class SyntheticScene:
         """(frames, 4, 4) ``T_world_left`` of frames ``0 .. frames-1``."""
         return self._origin_inv @ self._trajectory(np.arange(frames, dtype=np.int64))
 
-    def render_view(self, pose: F64, rng: np.random.Generator | None) -> tuple[NDArray[np.uint8], F64]:
+    def render_view(
+        self, pose: F64, rng: np.random.Generator | None, *, index: int = 0
+    ) -> tuple[NDArray[np.uint8], F64]:
         """Grey image and depth (metres, inf for sky) of a camera at ``pose`` (4x4 ``T_scene_camera``).
 
         ``rng`` draws the Gaussian sensor noise; None renders noise-free.
+        Moving primitives stand where they are at frame ``index``.
         """
+        image, depth, _ = self._render_view(pose, rng, index)
+        return image, depth
+
+    def _render_view(
+        self, pose: F64, rng: np.random.Generator | None, index: int
+    ) -> tuple[NDArray[np.uint8], F64, NDArray[np.int32]]:
+        """:meth:`render_view` plus the primitive index each pixel sees (-1: sky)."""
         cam = self.camera
-        rays, hits = cast(self.primitives, cam, pose)
+        offsets = self._offsets(index)
+        primitives = self.primitives_at(index)
+        rays, hits = cast(primitives, cam, pose)
         prim = hits.prim.ravel()
         idx = np.flatnonzero(prim >= 0)
         prim = prim[idx]
         t = hits.t.ravel()[idx]
         d = rays.dirs.reshape(3, -1).take(idx, axis=1)
         p = rays.origin[:, None] + t * d
-        n = surface_normals(self.primitives, p, prim, hits.face.ravel()[idx])
+        n = surface_normals(primitives, p, prim, hits.face.ravel()[idx])
+        if offsets is not None:
+            # A moving primitive's texture moves with it: texture its points where they were at frame 0.
+            p = p - offsets.T.take(prim, axis=1)
         d_norm = np.sqrt(d[0] ** 2 + d[1] ** 2 + d[2] ** 2)
         cos_inc = np.abs(n[0] * d[0] + n[1] * d[1] + n[2] * d[2]) / d_norm
         # Metres per pixel on the surface: range / focal length, stretched at grazing angles. The stretch is
@@ -388,7 +498,7 @@ class SyntheticScene:
         if rng is not None:
             grey = grey + rng.normal(0.0, _NOISE_SIGMA, grey.shape)
         image = np.clip(np.rint(grey), 0, 255).astype(np.uint8).reshape(cam.height, cam.width)
-        return image, hits.t
+        return image, hits.t, hits.prim
 
     def render(self, index: int, *, noise: bool = True) -> SyntheticFrame:
         """Render frame ``index``: both images, left depth and disparity, pose.
@@ -400,9 +510,10 @@ class SyntheticScene:
         right_pose = left_pose @ _pose(np.eye(3), np.array([cam.baseline, 0.0, 0.0]))
         rng_l = np.random.default_rng([self.seed, index, 0]) if noise else None
         rng_r = np.random.default_rng([self.seed, index, 1]) if noise else None
-        left, depth = self.render_view(left_pose, rng_l)
-        right, _ = self.render_view(right_pose, rng_r)
+        left, depth, seen = self._render_view(left_pose, rng_l, index)
+        right, _, _ = self._render_view(right_pose, rng_r, index)
         disparity = cam.depth_to_disparity(depth).astype(np.float32)
+        moving = np.isin(seen, self._movers) if self._motion is not None else None
         return SyntheticFrame(
             index=index,
             stamp=index / FRAME_RATE_HZ,
@@ -412,6 +523,7 @@ class SyntheticScene:
             disparity=disparity,
             pose=self._origin_inv @ left_pose,
             camera=cam,
+            moving=moving,
         )
 
 
@@ -723,6 +835,126 @@ def _room(rng: np.random.Generator, frames: int) -> tuple[list[Primitive], Calla
     return prims, trajectory
 
 
+def _vehicle(rng: np.random.Generator, x: float, z: float, ground: float, truck: bool) -> list[Primitive]:
+    """Boxes of a car (body, cabin, dark underbody) or a truck (cab, printed trailer, underbody) centred at ``x, z``."""
+    paint = float(rng.choice([0.12, 0.3, 0.5, 0.7, 0.88]))
+    if truck:
+        length, half_w = rng.uniform(13.0, 16.5), 1.25
+        trailer_h = rng.uniform(1.5, 1.9)
+        print_params = (rng.uniform(0.4, 0.8), rng.uniform(0.15, 0.35), rng.uniform(0.5, 2.0), 0.0, 1.0)
+        return [
+            Box((x, ground - 0.5, z), (half_w - 0.15, 0.35, length / 2 - 0.3), _CAR, (0.08, 0.0)),
+            Box((x, ground - 0.85 - trailer_h, z - 1.3), (half_w, trailer_h, length / 2 - 1.3), _OBJECT, print_params),
+            Box((x, ground - 2.2, z + length / 2 - 1.2), (half_w, 1.3, 1.2), _CAR, (paint, 0.0)),
+        ]
+    length, half_w = rng.uniform(4.2, 4.9), rng.uniform(0.88, 0.95)
+    return [
+        Box((x, ground - 0.3, z), (half_w - 0.1, 0.25, length / 2 - 0.4), _CAR, (0.06, 0.0)),
+        Box((x, ground - 0.8, z), (half_w, 0.3, length / 2), _CAR, (paint, 0.0)),
+        Box((x, ground - 1.3, z - 0.2), (half_w - 0.08, 0.22, 0.27 * length), _CAR, (paint, 1.0)),
+    ]
+
+
+def _highway(
+    rng: np.random.Generator, frames: int
+) -> tuple[list[Primitive], Callable[[NDArray[np.int64]], F64], Callable[[int], F64]]:
+    """Primitives, trajectory and vehicle motion of the highway scene, for ``frames`` frames at 2.5-3.5 m each.
+
+    The camera drives in the middle of three lanes (x = 0), straight along +z,
+    speeding up from ``v0`` to ``v1`` m per frame with a slight weave and
+    suspension pitch and roll. Vehicles move along z at constant speeds (metres
+    per frame): trucks in the right lane slower than the camera, cars in the
+    left lane faster, cars far ahead in the camera's lane at about its speed,
+    oncoming cars on the other carriageway.
+    """
+    ground = 1.65
+    v0 = rng.uniform(2.5, 2.9)
+    v1 = rng.uniform(max(v0, 3.0), 3.5)
+    phase = rng.uniform(0.0, 2 * np.pi, 4)
+    length = 3.5 * frames
+    z_start, z_end = -60.0, length + 260.0
+    zc, zh = 0.5 * (z_start + z_end), 0.5 * (z_end - z_start)
+
+    prims: list[Primitive] = [GroundPlane(ground, _MOTORWAY)]
+    rail_x = (_MW_EDGE_RIGHT + _MW_SHOULDER + 0.3, _MW_EDGE_LEFT - 0.8, _MW_ONCOMING + 0.8)
+    post_step = rng.uniform(3.0, 4.0)
+    metal = rng.uniform(0.55, 0.75)
+    for x in rail_x:
+        prims.append(Box((x, ground - 0.6, zc), (0.03, 0.17, zh), _RAIL, (metal,)))
+        for z in np.arange(z_start, z_end, post_step):
+            prims.append(Box((x + 0.1 * np.sign(x), ground - 0.4, float(z)), (0.06, 0.4, 0.06), _RAIL, (0.7 * metal,)))
+    # Sparse far structure: single trees beside the road, wooded hills and a few buildings far off.
+    z = z_start + rng.uniform(0.0, 20.0)
+    while z < z_end:
+        side = float(rng.choice([-1.0, 1.0]))
+        lateral = rng.uniform(14.0, 60.0)
+        x = (_MW_EDGE_RIGHT + lateral) if side > 0 else (_MW_ONCOMING - 3 * _MW_LANE - lateral)
+        crown = rng.uniform(2.0, 4.0)
+        trunk_h = rng.uniform(2.0, 4.0)
+        prims.append(Cylinder(x, z, rng.uniform(0.15, 0.3), ground - trunk_h, ground, _POLE, (rng.uniform(0.2, 0.4),)))
+        prims.append(Sphere((x, ground - trunk_h - 0.8 * crown, z), crown, _FOLIAGE, (rng.uniform(0.2, 0.4),)))
+        z += rng.uniform(12.0, 45.0)
+    for side in (1.0, -1.0):
+        z = z_start + rng.uniform(0.0, 60.0)
+        while z < z_end + 200.0:
+            width = rng.uniform(40.0, 120.0)
+            dist = rng.uniform(90.0, 250.0)
+            height = rng.uniform(8.0, 30.0)
+            if rng.random() < 0.25:
+                params: tuple[float, ...] = (
+                    ground, rng.uniform(0.45, 0.8), rng.uniform(0.15, 0.35), rng.uniform(2.0, 3.5),
+                    rng.uniform(2.8, 3.4), 0.5, 0.5, rng.uniform(0.1, 0.3),
+                )  # fmt: skip
+                material, height = _FACADE, rng.uniform(6.0, 20.0)
+            else:
+                params, material = (rng.uniform(0.2, 0.35),), _FOLIAGE
+            prims.append(
+                Box(
+                    (side * dist, ground - height / 2, z + width / 2),
+                    (width / 4, height / 2, width / 2),
+                    material,
+                    params,
+                )
+            )
+            z += width + rng.uniform(20.0, 150.0)
+
+    # Traffic: (lane x, start z relative to the camera, speed in m per frame, truck?).
+    traffic: list[tuple[float, float, float, bool]] = []
+    for _ in range(int(rng.integers(2, 4))):  # trucks ahead in the right lane, being overtaken
+        traffic.append((_MW_LANE, rng.uniform(15.0, 90.0), rng.uniform(2.1, 2.4), True))
+    for _ in range(int(rng.integers(2, 4))):  # cars overtaking in the left lane, from behind or beside
+        traffic.append((-_MW_LANE, rng.uniform(-25.0, 30.0), rng.uniform(3.6, 4.5), False))
+    for _ in range(int(rng.integers(1, 3))):  # cars ahead in the camera's lane, at about its speed
+        traffic.append((0.0, rng.uniform(35.0, 80.0), 0.5 * (v0 + v1) + rng.uniform(-0.1, 0.1), False))
+    for _ in range(int(rng.integers(2, 5))):  # oncoming traffic on the other carriageway
+        lane = _MW_ONCOMING - _MW_LANE * (0.5 + float(rng.integers(0, 3)))
+        traffic.append((lane, rng.uniform(60.0, 60.0 + 7.0 * frames), -rng.uniform(2.4, 3.2), bool(rng.random() < 0.3)))
+    n_static = len(prims)
+    speeds = np.zeros(n_static)
+    for x, z0, speed, truck in traffic:
+        boxes = _vehicle(rng, x + rng.uniform(-0.3, 0.3), z0, ground, truck)
+        prims.extend(boxes)
+        speeds = np.concatenate([speeds, np.full(len(boxes), speed)])
+
+    def motion(index: int) -> F64:
+        offsets = np.zeros((len(speeds), 3))
+        offsets[:, 2] = speeds * index
+        return offsets
+
+    def trajectory(indices: NDArray[np.int64]) -> F64:
+        last = int(indices.max()) if len(indices) else 0
+        k = np.arange(last + 1, dtype=np.float64)
+        speed = v0 + (v1 - v0) * np.clip(k / max(frames - 1, 1), 0.0, 1.0)
+        z = np.concatenate([[0.0], np.cumsum(speed)[:-1]])
+        x = 0.25 * np.sin(z / 60.0 + phase[0])
+        yaw = np.arctan(0.25 / 60.0 * np.cos(z / 60.0 + phase[0]))
+        pitch = np.deg2rad(0.25) * np.sin(k / 3.0 + phase[1])
+        roll = np.deg2rad(0.15) * np.sin(k / 4.0 + phase[2])
+        return np.stack([_pose(_rotation(yaw[i], pitch[i], roll[i]), np.array([x[i], 0.0, z[i]])) for i in indices])
+
+    return prims, trajectory, motion
+
+
 _BASELINES = {"room": (0.12, 0.2)}
 
 
@@ -733,17 +965,20 @@ def make_scene(
 
     Object placement, textures and the trajectory are drawn from
     ``numpy.random.default_rng(seed)``, so a seed always gives the same scene.
-    ``frames`` bounds how far the street extends (frames past it still render,
-    but the street ends).
+    ``frames`` bounds how far the street and the highway extend (frames past
+    it still render, but the road ends) and sets the highway's speed-up.
     """
     builders = {"street": _street, "orbit": _orbit, "room": _room}
-    if name not in builders:
+    if name not in builders and name != "highway":
         raise DatasetError(f"unknown synthetic scene {name!r}; expected one of {', '.join(SCENES)}")
     rng = np.random.default_rng(seed)
     # The room's camera is a MAV's, with a short baseline; drawn first so the rest of the stream is the scene's.
     baseline = rng.uniform(*_BASELINES[name]) if name in _BASELINES else _KITTI_BASELINE
     camera = kitti_like_camera(width, height, baseline=baseline)
     noise = ValueNoise(rng)
+    if name == "highway":
+        prims, trajectory, motion = _highway(rng, max(int(frames), 1))
+        return SyntheticScene(name, seed, camera, prims, trajectory, noise, motion)
     prims, trajectory = builders[name](rng, max(int(frames), 1))
     return SyntheticScene(name, seed, camera, prims, trajectory, noise)
 
