@@ -148,38 +148,32 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 
 
 def _cmd_label(args: argparse.Namespace) -> int:
-    from selfcontra_ros.bags.reader import is_bag
+    from selfcontra_ros.pipeline import BAG, input_kind, label_input
+    from selfcontra_ros.reports import METRICS_FILE
 
     source, out = Path(args.input), Path(args.out)
-    if is_bag(source):
-        from selfcontra_ros.bags.label_bag import label_bag, metrics_path
-
-        if args.frames is not None:
-            raise SelfContraError("--frames applies to sequence folders; a bag is labelled whole")
-        metrics = label_bag(
-            source,
-            out,
-            params_file=args.params,
-            sync=args.sync,
-            slop=args.slop,
-            namespace=args.namespace,
-            pose_topic=args.pose_topic,
-            disparity_topic=args.disparity_topic,
-            model_out=Path(args.model_out) if args.model_out else None,
-            stereo_input=_stereo_input(args, source),
-        )
-        written = f"wrote the labelled bag {out} and {metrics_path(out)}"
+    bag = input_kind(source) == BAG
+    if not bag:
+        _refuse_input_options(args, source)
+    metrics = label_input(
+        source,
+        out,
+        params_file=args.params,
+        frames=args.frames,
+        estimate_poses=args.estimate_poses,
+        sync=args.sync,
+        slop=args.slop,
+        namespace=args.namespace,
+        pose_topic=args.pose_topic,
+        disparity_topic=args.disparity_topic,
+        model_out=Path(args.model_out) if args.model_out else None,
+        stereo_input=_stereo_input(args, source) if bag else None,
+    )
+    if bag:
+        written = f"wrote the labelled bag {out} and {out / METRICS_FILE}"
         if args.model_out:
             written += f"; confidence model {args.model_out}"
     else:
-        from selfcontra_ros.pipeline import label_sequence
-
-        _refuse_input_options(args, source)
-        if args.model_out:
-            raise SelfContraError("--model-out applies to bag input (online confidence runs in the bag labeler)")
-        metrics = label_sequence(
-            source, out, params_file=args.params, frames=args.frames, estimate_poses=args.estimate_poses
-        )
         written = f"wrote labels and metrics.json to {out}"
         if metrics["skipped_frames"]:
             written += (

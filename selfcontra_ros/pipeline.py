@@ -1,4 +1,14 @@
-"""Offline labeling of a stereo sequence: the ``selfcontra label`` command.
+"""Offline labeling: the ``selfcontra label`` command, for a sequence folder or a bag.
+
+:func:`label_input` is the one place that decides which front end an input
+needs (:func:`input_kind`): a rosbag2 bag goes to
+:func:`selfcontra_ros.bags.label_bag.label_bag` (a new MCAP bag, see there),
+anything else to :func:`label_sequence` here. The command line and the batch
+runner (:mod:`selfcontra_ros.batch`) both call it, so a batch gives what
+``selfcontra label`` gives on each input. The dependencies run one way: this
+module imports the bag labeler and the odometry (for ``estimate_poses``);
+they import neither this module nor each other, only the shared report
+helpers of :mod:`selfcontra_ros.reports`.
 
 :func:`label_sequence` runs the query algorithm and the self-contradiction
 labeler over a KITTI-layout sequence (real or synthetic) and writes, per
@@ -28,20 +38,17 @@ odometry) only the ones needing none, :func:`~selfcontra_ros.evaluation.metrics.
 (``query_valid_share``, ``label_positive_share``, ``label_negative_share``,
 ``label_unknown_share``). Undefined figures (NaN) are written as ``null``.
 
-The function is pure in the sense of DESIGN section 9: it reads only its
-arguments' files, writes only below ``out_dir`` and keeps no global state, so
-a cluster engine can run it on many sequences at once.
+The functions are pure in the sense of DESIGN section 9: they read only their
+arguments' files, write only below ``out_dir`` (or the output bag) and keep no
+global state, so a cluster engine can run them on many inputs at once.
 """
 
 from __future__ import annotations
 
-import json
-import math
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, cast
+from typing import TYPE_CHECKING, Any, cast
 
 import cv2
 import numpy as np
@@ -52,56 +59,31 @@ from selfcontra_ros import interrupts
 from selfcontra_ros.config import load_params, params_to_dict
 from selfcontra_ros.datasets.kitti import OdometrySequence, StereoFrame, open_sequence
 from selfcontra_ros.errors import SelfContraError
-from selfcontra_ros.evaluation.metrics import label_metrics, label_shares, mean_metrics
+from selfcontra_ros.evaluation.metrics import mean_metrics
 from selfcontra_ros.labeler import LabelResult
 from selfcontra_ros.labels import colorize_labels
+from selfcontra_ros.reports import (
+    LABELS_COLOR_DIR,
+    LABELS_DIR,
+    METRICS_FILE,
+    PendingView,
+    evaluate_view,
+    write_json,
+)
 from selfcontra_ros.session import LabelingSession
 
-__all__ = [
-    "LABELS_COLOR_DIR",
-    "LABELS_DIR",
-    "METRICS_FILE",
-    "PendingView",
-    "evaluate_view",
-    "json_safe",
-    "label_sequence",
-    "write_json",
-]
+if TYPE_CHECKING:
+    from selfcontra_ros.bags.stereo_input import StereoInput
 
-LABELS_DIR = "labels"
-LABELS_COLOR_DIR = "labels_color"
-METRICS_FILE = "metrics.json"
+__all__ = ["BAG", "SEQUENCE", "input_kind", "label_input", "label_sequence"]
 
-
-@dataclass
-class PendingView:
-    """What the evaluation of a view needs once the labeler releases it."""
-
-    disparity: NDArray[np.float32]
-    gt_disparity: NDArray[np.float32] | None
+#: The two front ends of :func:`label_input`: a rosbag2 bag, or a KITTI-layout sequence folder.
+BAG, SEQUENCE = "bag", "sequence"
 
 
 def _frame_indices(sequence: OdometrySequence, frames: slice | None) -> list[int]:
     indices = range(len(sequence))
     return list(indices[frames] if frames is not None else indices)
-
-
-def json_safe(value: Any) -> Any:
-    """Return ``value`` with NaN/inf floats as ``None`` and numpy scalars as Python numbers."""
-    if isinstance(value, dict):
-        return {str(k): json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [json_safe(v) for v in value]
-    if isinstance(value, np.generic):
-        value = value.item()
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
-
-
-def write_json(path: Path, report: dict[str, Any]) -> None:
-    """Write a metrics/report dictionary as indented JSON (:func:`json_safe`: undefined figures as ``null``)."""
-    path.write_text(json.dumps(json_safe(report), indent=2, allow_nan=False) + "\n", encoding="utf-8")
 
 
 def _write_png(path: Path, image: NDArray[np.uint8]) -> None:
@@ -116,15 +98,8 @@ def _write_labels(out_dir: Path, index: int, labels: NDArray[np.uint8]) -> None:
     _write_png(out_dir / LABELS_COLOR_DIR / name, np.ascontiguousarray(colorize_labels(labels)[:, :, ::-1]))
 
 
-def evaluate_view(result: LabelResult, pending: PendingView) -> dict[str, float]:
-    """Figures of one labelled view: label metrics with ground truth, else the label shares."""
-    if pending.gt_disparity is None:
-        return label_shares(result.labels, pending.disparity)
-    return label_metrics(result.labels, pending.disparity, pending.gt_disparity, stage2_labels=result.stage2_labels)
-
-
 def _run(
-    sequence: OdometrySequence, indices: list[int], session: LabelingSession, out_dir: Path
+    sequence: OdometrySequence, indices: list[int], session: LabelingSession, out_dir: Path, progress: bool
 ) -> Iterator[tuple[int, float, dict[str, float]]]:
     """Match and label the frames; yield ``(index, stamp, figures)`` per labelled frame, in labelling order."""
     pending: dict[int, PendingView] = {}
@@ -136,7 +111,7 @@ def _run(
             _write_labels(out_dir, index, result.labels)
             yield index, stamps.pop(index), evaluate_view(result, pending.pop(index))
 
-    for index in tqdm(indices, desc="label", unit="frame"):
+    for index in tqdm(indices, desc="label", unit="frame", disable=not progress):
         interrupts.check()  # between frames: every label PNG written so far is whole
         frame: StereoFrame = sequence[index]
         if frame.pose is None:
@@ -156,6 +131,7 @@ def label_sequence(
     params_file: str | Path | None = None,
     frames: slice | None = None,
     estimate_poses: bool = False,
+    progress: bool = True,
 ) -> dict[str, Any]:
     """Label a KITTI-layout stereo sequence and evaluate the labels.
 
@@ -168,6 +144,7 @@ def label_sequence(
         estimate_poses: when the sequence has no poses, estimate them with the
             package's stereo visual odometry; frames whose pose is unreliable
             are not labelled (listed as ``unreliable_pose_frames``).
+        progress: show progress bars (frames; odometry with ``estimate_poses``).
 
     Returns:
         The content of ``metrics.json`` (with NaN, not ``null``, for undefined figures).
@@ -198,7 +175,7 @@ def label_sequence(
             )
         from selfcontra_ros.odometry.run import poses_for_sequence
 
-        sequence.poses, reliable = poses_for_sequence(sequence, progress=True)
+        sequence.poses, reliable = poses_for_sequence(sequence, progress=progress)
     indices = _frame_indices(sequence, frames)
     unreliable = [] if reliable is None else [i for i in indices if not reliable[i]]
     indices = [i for i in indices if i not in set(unreliable)]  # an unreliable pose would make false labels
@@ -212,7 +189,7 @@ def label_sequence(
     per_frame: list[tuple[int, float, dict[str, float]]] = []
     status = "failed"
     try:
-        per_frame.extend(_run(sequence, indices, session, out_dir))
+        per_frame.extend(_run(sequence, indices, session, out_dir, progress))
         status = "complete"
     except KeyboardInterrupt as exc:
         status = "interrupted"
@@ -257,3 +234,73 @@ def _write_report(
     }
     write_json(out_dir / METRICS_FILE, report)
     return report
+
+
+def input_kind(source: Path | str) -> str:
+    """The front end ``source`` needs: :data:`BAG` (a rosbag2 folder or ``.mcap`` file) or :data:`SEQUENCE`."""
+    from selfcontra_ros.bags.reader import is_bag
+
+    return BAG if is_bag(Path(source)) else SEQUENCE
+
+
+def label_input(
+    source: Path | str,
+    out: Path | str,
+    *,
+    params_file: str | Path | None = None,
+    progress: bool = True,
+    frames: slice | None = None,
+    estimate_poses: bool = False,
+    sync: str = "exact",
+    slop: float = 0.0,
+    namespace: str | None = None,
+    pose_topic: str | None = None,
+    disparity_topic: str | None = None,
+    model_out: str | Path | None = None,
+    stereo_input: StereoInput | None = None,
+) -> dict[str, Any]:
+    """Label one input with the front end it needs (:func:`input_kind`): what ``selfcontra label`` does.
+
+    Args:
+        source: a KITTI-layout sequence (dataset root with one sequence, or ``sequences/XX``) or a bag.
+        out: output folder (sequence) or output bag folder (bag; must not exist).
+        params_file: parameter YAML; ``None`` uses the package's ``config/labeler.yaml``.
+        progress: show progress bars.
+        frames: frame range of a sequence (a bag is labelled whole).
+        estimate_poses: a sequence without poses gets them from the stereo visual odometry.
+        sync, slop, namespace, pose_topic, disparity_topic, model_out, stereo_input: bag input only,
+            see :func:`~selfcontra_ros.bags.label_bag.label_bag`.
+
+    Returns:
+        The content of the run's ``metrics.json``.
+
+    Raises:
+        SelfContraError: an option of the other front end given (``frames`` for a bag;
+            ``model_out`` or ``stereo_input`` for a sequence), and whatever the front end raises.
+    """
+    source, out = Path(source), Path(out)
+    if input_kind(source) == BAG:
+        from selfcontra_ros.bags.label_bag import label_bag
+
+        if frames is not None:
+            raise SelfContraError("--frames applies to sequence folders; a bag is labelled whole")
+        return label_bag(
+            source,
+            out,
+            params_file=params_file,
+            sync=sync,
+            slop=slop,
+            progress=progress,
+            namespace=namespace,
+            pose_topic=pose_topic,
+            disparity_topic=disparity_topic,
+            model_out=model_out,
+            stereo_input=stereo_input,
+        )
+    if model_out is not None:
+        raise SelfContraError("--model-out applies to bag input (online confidence runs in the bag labeler)")
+    if stereo_input is not None:
+        raise SelfContraError(f"a stereo input (remaps, image transport, rectify) applies to bags, not to {source}")
+    return label_sequence(
+        source, out, params_file=params_file, frames=frames, estimate_poses=estimate_poses, progress=progress
+    )

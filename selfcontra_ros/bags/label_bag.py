@@ -127,7 +127,7 @@ from selfcontra_ros.geometry import StereoCamera
 from selfcontra_ros.labeler import LabelerParams, LabelResult
 from selfcontra_ros.labels import colorize_labels
 from selfcontra_ros.matching.base import MatcherError, MatcherParams
-from selfcontra_ros.pipeline import METRICS_FILE, PendingView, evaluate_view, write_json
+from selfcontra_ros.reports import METRICS_FILE, PendingView, evaluate_view, write_json
 from selfcontra_ros.ros.conversions import (
     disparity_from_message,
     stamp_to_nanoseconds,

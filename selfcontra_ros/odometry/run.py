@@ -48,7 +48,7 @@ from selfcontra_ros.datasets.kitti import OdometrySequence, StereoScene, open_se
 from selfcontra_ros.geometry import StereoCamera
 from selfcontra_ros.odometry.metrics import SHORT_LENGTHS, OdometryMetrics, evaluate_odometry
 from selfcontra_ros.odometry.stereo_vo import FrameQuality, OdometryError, StereoOdometry, VOParams
-from selfcontra_ros.pipeline import write_json
+from selfcontra_ros.reports import write_json
 from selfcontra_ros.ros.conversions import stamp_to_nanoseconds
 
 __all__ = [
