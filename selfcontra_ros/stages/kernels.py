@@ -1193,14 +1193,14 @@ def lookup_votes_kernel(
     positive_sq: float,
     negative_sq: float,
     min_angle_deg: float,
-    negatives_from_any: bool,
+    negatives_from_any: np.ndarray,
 ) -> None:
     """Stage 2, lookup: add one reference view's positive or occlusion vote to each valid query pixel, in place.
 
     Per valid query pixel ``i`` (``X_q``, query frame): ``X_q`` into the
     reference, nearest pixel ``j``; a valid, supported (``support_r >= 1``)
-    measurement that is more accurate (``u_r < u_q``, or any with
-    ``negatives_from_any``) is compared by the squared tolerance distance
+    measurement that is more accurate (``u_r < u_q``, or any where
+    ``negatives_from_any[i]``, a bool per query pixel) is compared by the squared tolerance distance
     ``m2`` (reading ``mode``). Within ``positive_sq`` and more accurate:
     ``+support_r / sqrt(u_r)``, or no vote when the observation angle between
     the mean centres ``centre_r``, ``centre_q`` (query frame, metres) is not
@@ -1228,7 +1228,7 @@ def lookup_votes_kernel(
         if j >= 0 and r_valid[j] and r_bits[j] != np.uint64(0):
             u_r = np.float64(r_u[j])
             accurate = u_r < u_q
-            if accurate or negatives_from_any:
+            if accurate or negatives_from_any[i]:
                 xr, yr, zr = np.float64(r_points[j, 0]), np.float64(r_points[j, 1]), np.float64(r_points[j, 2])
                 xrq, yrq, zrq = transform_scalar(query_from_ref, xr, yr, zr)
                 m2 = tolerance_sq_capped_scalar(
@@ -1296,14 +1296,14 @@ def free_space_votes_kernel(
     sigma_px: float,
     mode: int,
     free_space_sq: float,
-    negatives_from_any: bool,
+    negatives_from_any: np.ndarray,
     radius: int,
 ) -> None:
     """Stage 2, splat: add one reference view's free-space-violation vote to each ``pending`` query pixel, in place.
 
     The splatted reference point ``source[i]`` (flat reference index, -1:
     none; :func:`splat_supported_kernel`), if more accurate than ``X_q``
-    (``u_s < u_q``, or any with ``negatives_from_any``), not within
+    (``u_s < u_q``, or any where ``negatives_from_any[i]``), not within
     ``free_space_sq`` (squared tolerance distance, reading ``mode``) and in
     front of ``X_q`` (depth in the query), votes ``-support_s / sqrt(u_s)``,
     unless ``radius > 0`` and it agrees within ``free_space_sq`` with a valid
@@ -1317,7 +1317,7 @@ def free_space_votes_kernel(
             continue
         u_q = np.float64(q_u[i])
         u_s = np.float64(r_u[s])
-        if not (u_s < u_q or negatives_from_any):
+        if not (u_s < u_q or negatives_from_any[i]):
             continue
         xq, yq, zq = np.float64(q_points[i, 0]), np.float64(q_points[i, 1]), np.float64(q_points[i, 2])
         xs, ys, zs = np.float64(r_points[s, 0]), np.float64(r_points[s, 1]), np.float64(r_points[s, 2])

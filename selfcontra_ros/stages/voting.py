@@ -67,8 +67,11 @@ __all__ = ["NEGATIVE_VOTERS", "VotingResult", "consistency_voting", "fattening_b
 #: ``any`` - every supported one. The contradiction test already allows for the reference's own uncertainty
 #: under the ``sum`` tolerance; the paper's accuracy rule discards exactly the evidence against foreground
 #: fattening (a too-near query point beside an object edge is more accurate than the background behind it,
-#: whose views it would occlude), and keeps it out of the vote.
-NEGATIVE_VOTERS = ("more_accurate", "any")
+#: whose views it would occlude), and keeps it out of the vote;
+#: ``band`` - every supported one for the query pixels in the query's own :func:`fattening_band` (where that
+#: evidence matters, and which can never be positive), the more accurate ones elsewhere. Needs
+#: ``edge_jump_px > 0``; otherwise it is ``more_accurate``.
+NEGATIVE_VOTERS = ("more_accurate", "any", "band")
 
 
 @dataclass(frozen=True)
@@ -99,7 +102,7 @@ def _reference_votes(
     positive_sigma: float,
     negative_sigma: float,
     min_angle_deg: float,
-    negatives_from_any: bool,
+    negatives_from_any: NDArray[np.bool_],
     free_space: bool,
     free_space_neighbourhood: int,
     splat_bits: NDArray[np.uint64] | None = None,
@@ -113,6 +116,8 @@ def _reference_votes(
     (:func:`selfcontra_ros.stages.kernels.splat_supported_kernel`) and the free-space test
     (:func:`selfcontra_ros.stages.kernels.free_space_votes_kernel`). ``splat_bits`` (default the reference's
     ``support_bits``) are the support the splat and its votes use: zero leaves a reference point out.
+    ``negatives_from_any`` (flat, per query pixel): where any supported reference measurement may vote negative,
+    not only a more accurate one.
     """
     ref_from_query = ref.from_view(query)
     query_from_ref = query.from_view(ref)
@@ -143,7 +148,7 @@ def _reference_votes(
         float(positive_sigma) ** 2,
         float(negative_sigma) ** 2,
         float(min_angle_deg),
-        bool(negatives_from_any),
+        negatives_from_any,
     )
     if not free_space:
         return
@@ -174,7 +179,7 @@ def _reference_votes(
         # Free-space violations keep sigma_max: the query point lies behind the reference's surface, where its
         # linearised covariance (u grows as depth^4) is wide, so a wider test would miss most of them.
         float(sigma_max) * float(sigma_max),
-        bool(negatives_from_any),
+        negatives_from_any,
         int(free_space_neighbourhood),
     )
 
@@ -261,7 +266,8 @@ def consistency_voting(
         min_query_support: a pixel is labelled positive only if its own Stage-1 support is at least this;
             otherwise a positive sum leaves it unknown. 0 = the paper.
         negative_voters: which supported reference measurements may vote *negative*, one of
-            :data:`NEGATIVE_VOTERS`: ``more_accurate`` (paper: ``u_r < u_q``, like positive votes) or ``any``.
+            :data:`NEGATIVE_VOTERS`: ``more_accurate`` (paper: ``u_r < u_q``, like positive votes), ``any``, or
+            ``band`` (any inside the query's fattening band of ``edge_jump_px``, more accurate elsewhere).
         free_space_votes: whether the splat casts free-space-violation votes (paper: yes). Without them only
             the lookup votes (positive or occlusion).
         free_space_neighbourhood: radius in pixels; a splatted reference point that agrees (within the
@@ -283,6 +289,14 @@ def consistency_voting(
     """
     n = query.valid.size
     mode = tolerance_code(tolerance)
+    if negative_voters not in NEGATIVE_VOTERS:
+        raise ValueError(f"negative_voters must be one of {NEGATIVE_VOTERS}, got {negative_voters!r}")
+    if negative_voters == "any":
+        from_any = np.ones(n, dtype=bool)
+    elif negative_voters == "band" and edge_jump_px > 0:
+        from_any = view_band(query, camera, edge_jump_px, edge_occluded_side_px, edge_other_px)
+    else:
+        from_any = np.zeros(n, dtype=bool)
     full_sum = np.zeros(n)
     full_voted = np.zeros(n, dtype=bool)
     # One reference after the other, as the paper sums votes: the sums do not depend on how pixels are split
@@ -309,7 +323,7 @@ def consistency_voting(
             positive_sigma=sigma_max if positive_sigma is None else positive_sigma,
             negative_sigma=sigma_max if negative_sigma is None else negative_sigma,
             min_angle_deg=min_angle_deg,
-            negatives_from_any=negative_voters == "any",
+            negatives_from_any=from_any,
             free_space=free_space_votes,
             free_space_neighbourhood=free_space_neighbourhood,
             splat_bits=splat_bits,

@@ -130,17 +130,19 @@ def _slow_votes(
     positive_sigma: float,
     negative_sigma: float,
     min_angle_deg: float,
-    negatives_from_any: bool,
+    negatives_from_any: bool | np.ndarray,
     free_space: bool,
     radius: int,
     band_px: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """One reference's vote per query pixel, pixel by pixel, as DESIGN section 3 states the rules.
 
-    ``band_px > 0``: the reference's fattening band with that jump (16 px to the left, 3 elsewhere) is kept
-    out of the free-space z-buffer. Returns the votes and the pixels whose angle or range comparison was a
-    tie (module docstring).
+    ``negatives_from_any``: for every query pixel, or per query pixel (flat bool), whether any supported
+    reference measurement may vote negative. ``band_px > 0``: the reference's fattening band with that jump
+    (16 px to the left, 3 elsewhere) is kept out of the free-space z-buffer. Returns the votes and the pixels
+    whose angle or range comparison was a tie (module docstring).
     """
+    from_any = np.broadcast_to(np.asarray(negatives_from_any, dtype=bool), query.valid.shape)
     votes = np.zeros(query.valid.size)
     doubtful = np.zeros(query.valid.size, dtype=bool)
     ref_from_query = ref.from_view(query)
@@ -161,7 +163,7 @@ def _slow_votes(
         if ok[0] and ref.valid[j] and support[j] >= 1:
             u_r = float(ref.u[j])
             accurate = u_r < u_q
-            if accurate or negatives_from_any:
+            if accurate or from_any[q]:
                 x_r = ref.points[j].astype(np.float64)
                 distance = math.sqrt(_tol_sq(tolerance, query, ref, q, x_r, u_r))
                 weight = float(support[j]) / math.sqrt(u_r)
@@ -185,7 +187,7 @@ def _slow_votes(
             in_front = transform(query.from_view(ref), x_s[None])[0, 2] < x_q[2]
             # The free-space test and its outline check use sigma_max, not the hysteresis band.
             far = not math.sqrt(_tol_sq(tolerance, query, ref, q, x_s, u_s)) <= sigma_max
-            if (u_s < u_q or negatives_from_any) and in_front and far:
+            if (u_s < u_q or from_any[q]) and in_front and far:
                 row, col = divmod(int(q), CAMERA.width)
                 outline = False
                 for r in range(max(row - radius, 0), min(row + radius, CAMERA.height - 1) + 1):
@@ -208,10 +210,11 @@ def _band(view: View, jump_px: float) -> np.ndarray:
 OPTIONS = [
     pytest.param({}, id="defaults"),
     pytest.param({"tolerance": "query"}, id="query-tolerance"),
-    pytest.param({"tolerance": "smaller", "negatives_from_any": True}, id="smaller-any"),
+    pytest.param({"tolerance": "smaller", "voters": "any"}, id="smaller-any"),
     pytest.param({"min_angle_deg": 12.0}, id="min-angle"),
     pytest.param({"free_space": False}, id="no-free-space"),
     pytest.param({"band_px": 4.0}, id="reference-band"),
+    pytest.param({"band_px": 4.0, "voters": "band"}, id="band-voters"),
     pytest.param({"radius": 0, "positive_sigma": 2.0, "negative_sigma": 2.0}, id="paper"),
 ]
 
@@ -224,16 +227,22 @@ def test_consistency_voting_matches_slow_reference(options: dict) -> None:
         "positive_sigma": 1.5,
         "negative_sigma": 3.0,
         "min_angle_deg": 0.0,
-        "negatives_from_any": False,
+        "voters": "more_accurate",
         "free_space": True,
         "radius": 2,
         "band_px": 0.0,
     } | options
+    voters = o.pop("voters")
+    # Where any reference may vote negative: everywhere, nowhere, or in the query's own fattening band.
+    from_any = {"any": True, "more_accurate": False}.get(voters, False)
+    if voters == "band":
+        from_any = _band(query, o["band_px"])
+        assert from_any.sum() > 50  # the band must hold enough pixels for the test to mean something
     expected_sum = np.zeros(query.valid.size)
     expected_voted = np.zeros(query.valid.size, dtype=bool)
     doubtful = np.zeros(query.valid.size, dtype=bool)
     for ref in refs:  # in window order, as the votes are summed
-        votes, ties = _slow_votes(query, ref, **o)
+        votes, ties = _slow_votes(query, ref, **o, negatives_from_any=from_any)
         expected_sum += votes
         expected_voted |= votes != 0
         doubtful |= ties
@@ -245,12 +254,14 @@ def test_consistency_voting_matches_slow_reference(options: dict) -> None:
         sigma_px=1.0,
         tolerance=o["tolerance"],
         min_angle_deg=o["min_angle_deg"],
-        negative_voters="any" if o["negatives_from_any"] else "more_accurate",
+        negative_voters=voters,
         free_space_votes=o["free_space"],
         free_space_neighbourhood=o["radius"],
         positive_sigma=o["positive_sigma"],
         negative_sigma=o["negative_sigma"],
         edge_jump_px=o["band_px"],
+        edge_occluded_side_px=16,
+        edge_other_px=3,
         free_space_band=o["band_px"] > 0,
     )
     assert doubtful.mean() < 0.01, f"{int(doubtful.sum())} pixels decided at a tie"
@@ -281,6 +292,13 @@ def test_scene_exercises_every_kind_of_vote() -> None:
     with_band, _ = _slow_votes(query, ref, **base, negatives_from_any=False, free_space=True, radius=2, band_px=4.0)
     assert _band(ref, 4.0).sum() > 0
     assert ((with_outline < 0) & (with_band == 0)).sum() > 0
+    # Voters of any accuracy in the query's own band add negatives there, and nowhere else.
+    query_band = _band(query, 4.0)
+    band_any = dict(base, free_space=True, radius=2, band_px=4.0)
+    accurate_only = sum(_slow_votes(query, r, **band_any, negatives_from_any=False)[0] for r in refs)
+    in_band_any = sum(_slow_votes(query, r, **band_any, negatives_from_any=query_band)[0] for r in refs)
+    assert ((in_band_any < 0) & (accurate_only >= 0)).sum() > 20
+    np.testing.assert_array_equal(in_band_any[~query_band], accurate_only[~query_band])
 
 
 @pytest.mark.parametrize("share_needed", [1.0, 0.3])
