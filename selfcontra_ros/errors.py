@@ -8,6 +8,7 @@ catch the package's own complaints without hiding programming errors.
 from __future__ import annotations
 
 __all__ = [
+    "BatchError",
     "CalibrationError",
     "ConversionError",
     "DatasetError",
@@ -19,6 +20,10 @@ __all__ = [
 
 class SelfContraError(Exception):
     """Base class of all errors raised by selfcontra_ros on bad input."""
+
+
+class BatchError(SelfContraError):
+    """A batch of inputs cannot be run: no input matched, two inputs share an output name, a result exists already."""
 
 
 class CalibrationError(SelfContraError):

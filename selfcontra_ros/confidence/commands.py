@@ -56,27 +56,41 @@ from selfcontra_ros.bags.stereo_input import StereoInput
 from selfcontra_ros.confidence import constants
 from selfcontra_ros.confidence.bag_frames import BagFrame, BagLabels, is_bag, iter_bag_frames, read_bag_labels
 from selfcontra_ros.confidence.baselines import wls_confidence
-from selfcontra_ros.confidence.features import FeatureContext, compute_features, lrd_confidence
+from selfcontra_ros.confidence.features import FeatureContext, compute_features, feature_names, lrd_confidence
 from selfcontra_ros.confidence.forest import ForestModel, ModelError, load_model, model_path, save_model
 from selfcontra_ros.confidence.inputs import query_feature_input
-from selfcontra_ros.confidence.training import Samples, TrainParams, frame_samples, merge_samples, train
+from selfcontra_ros.confidence.training import (
+    Samples,
+    TrainParams,
+    balanced_indices,
+    frame_samples,
+    merge_samples,
+    train,
+)
 from selfcontra_ros.datasets.kitti import StereoFrame, open_sequence, open_stereo_dataset
 from selfcontra_ros.datasets.middlebury import middlebury_scenes, read_middlebury
 from selfcontra_ros.errors import DatasetError, SelfContraError
 from selfcontra_ros.evaluation.metrics import DEFAULT_THRESHOLD_PX, ground_truth_labels
 from selfcontra_ros.evaluation.plots import plot_sparsification
 from selfcontra_ros.evaluation.sparsification import DEFAULT_STEP, sparsification
+from selfcontra_ros.labels import NEGATIVE, POSITIVE
 from selfcontra_ros.matching.base import MatcherParams, make_matcher
 
 __all__ = [
     "GT",
     "LRD",
     "WLS",
+    "InputSamples",
     "collect_samples",
     "confidence_table",
     "evaluate_command",
+    "input_rng",
+    "input_samples",
     "iter_frames",
+    "merge_input_samples",
+    "train_and_save",
     "train_command",
+    "training_matcher",
 ]
 
 #: ``--labels`` value selecting ground-truth labels.
@@ -217,6 +231,119 @@ def _matcher_params(sources: Sequence[_LabelSource], matcher: MatcherParams | No
 # ------------------------------------------------------------------------------------------- training
 
 
+def input_rng(seed: int, position: int) -> np.random.Generator:
+    """The generator of the sample draw of the ``position``-th ``(data, labels)`` pair of a run seeded ``seed``.
+
+    Each input draws from its own generator, so that its samples do not depend on the inputs before it:
+    ``selfcontra batch train`` samples the inputs apart (in parallel) and gets what :func:`collect_samples` gets.
+    """
+    return np.random.default_rng([int(seed), int(position)])
+
+
+@dataclass
+class InputSamples:
+    """The training samples of one ``(data, labels)`` pair.
+
+    Attributes:
+        samples: feature set -> the input's samples, its labelled frames in order (empty when none).
+        frames: frames read from the data.
+        labelled: frames that had a label image (each gave samples, possibly none of one class).
+    """
+
+    samples: dict[str, Samples]
+    frames: int
+    labelled: int
+
+
+def input_samples(
+    data: str | Path,
+    labels: str | Path,
+    feature_sets: Sequence[str],
+    params: MatcherParams,
+    rng: np.random.Generator,
+    *,
+    max_per_class: int = int(constants.TRAINING["max_per_class"]),
+    max_per_input: int | None = None,
+    namespace: str | None = None,
+    stereo_input: StereoInput | None = None,
+    slop: float | None = None,
+) -> InputSamples:
+    """Balanced samples of one ``(data, labels)`` pair with query algorithm ``params`` (see :func:`collect_samples`).
+
+    Args:
+        data, labels: one pair as :func:`collect_samples` takes them.
+        feature_sets: feature sets to sample; matching runs once per frame.
+        params: the run's query algorithm (:func:`training_matcher`).
+        rng: the pair's generator (:func:`input_rng`).
+        max_per_class: per-image cap on samples of each class.
+        max_per_input: cap on the pair's samples of each feature set (both classes together); an
+            input above it keeps a balanced draw of ``max_per_input // 2`` per class. None: no cap.
+        namespace, stereo_input, slop: how a data bag is read (:func:`iter_frames`).
+
+    Raises:
+        SelfContraError: labels of a bag that match no frame of its data (or with data that is not a bag).
+        BagError: a bag that cannot be read or holds no stereo frames or no labels.
+    """
+    source = _label_source(labels, data)
+    query = make_matcher(params)
+    parts: dict[str, list[Samples]] = {name: [] for name in feature_sets}
+    frames = matched = labelled = 0
+    for frame in iter_frames(data, namespace=namespace, stereo_input=stereo_input, slop=slop):
+        interrupts.check()
+        frames += 1
+        if not source.has_labels(frame):
+            continue
+        matched += 1
+        inputs = query_feature_input(query, frame.left, frame.right)
+        label_image = source.labels(frame, inputs.disparity)
+        if label_image is None:
+            continue
+        labelled += 1
+        ctx = FeatureContext(inputs)
+        for name in feature_sets:
+            parts[name].append(frame_samples(name, ctx, label_image, rng, max_per_class=max_per_class))
+    if source.bag is not None and not matched:
+        raise SelfContraError(
+            f"none of the {len(source.bag.images)} label images of {labels} (stamps {source.bag.stamp_range()}) "
+            f"matches the left image stamp of one of the {frames} frames of {data}; "
+            "were the labels made from this bag?"
+        )
+    merged: dict[str, Samples] = {}
+    for name in feature_sets:
+        width = len(feature_names(name))
+        empty = Samples(name, np.zeros((0, width), np.float32), np.zeros(0, bool), frames=0)
+        samples = merge_samples(parts[name]) if parts[name] else empty
+        if max_per_input is not None and samples.labels.size > max_per_input:
+            codes = np.where(samples.labels, POSITIVE, NEGATIVE)
+            keep = balanced_indices(codes, max(int(max_per_input) // 2, 0), rng)
+            samples = Samples(name, samples.features[keep], samples.labels[keep], frames=samples.frames)
+        merged[name] = samples
+    return InputSamples(samples=merged, frames=frames, labelled=labelled)
+
+
+def training_matcher(
+    pairs: Sequence[tuple[str | Path, str | Path]], matcher: MatcherParams | None = None
+) -> MatcherParams:
+    """The one query algorithm of a training run on ``pairs``: the labels' own, else ``matcher``, else the default.
+
+    Raises:
+        SelfContraError: label sources of different query algorithms, or other than ``matcher``.
+        DatasetError: a label folder that does not exist.
+    """
+    return _matcher_params([_label_source(labels, data) for data, labels in pairs], matcher)
+
+
+def merge_input_samples(parts: Sequence[InputSamples], feature_sets: Sequence[str]) -> dict[str, Samples]:
+    """The samples of a run: each feature set's samples of the pairs concatenated in the pairs' order.
+
+    Raises:
+        SelfContraError: no pair had a labelled frame.
+    """
+    if not any(part.labelled for part in parts):
+        raise SelfContraError("no frame of the inputs has labels to train on")
+    return {name: merge_samples([part.samples[name] for part in parts]) for name in feature_sets}
+
+
 def collect_samples(
     pairs: Sequence[tuple[str | Path, str | Path]],
     feature_sets: Sequence[str],
@@ -227,11 +354,13 @@ def collect_samples(
     namespace: str | None = None,
     stereo_inputs: Sequence[StereoInput | None] | None = None,
     slop: float | None = None,
+    max_per_input: int | None = None,
 ) -> tuple[dict[str, Samples], MatcherParams]:
     """Balanced training samples of several feature sets from ``(data, labels)`` pairs; matching runs once per frame.
 
     ``namespace``, ``stereo_inputs`` (one per pair, None for a bag's own record) and ``slop``
-    say how data bags are read (:func:`iter_frames`).
+    say how data bags are read (:func:`iter_frames`). Pair ``i`` draws its samples with
+    :func:`input_rng` ``(seed, i)`` (:func:`input_samples`); ``max_per_input`` caps each pair's samples.
 
     Returns:
         ``({feature set: samples}, query algorithm parameters)``.
@@ -246,35 +375,25 @@ def collect_samples(
         raise SelfContraError(
             f"{len(bag_inputs)} stereo inputs for {len(pairs)} --data/--labels pairs; give one per pair"
         )
-    sources = [_label_source(labels, data) for data, labels in pairs]
-    params = _matcher_params(sources, matcher)
-    query = make_matcher(params)
-    rng = np.random.default_rng(seed)
-    parts: dict[str, list[Samples]] = {name: [] for name in feature_sets}
-    for (data, labels), source, stereo_input in zip(pairs, sources, bag_inputs, strict=True):
-        frames = matched = 0
-        for frame in iter_frames(data, namespace=namespace, stereo_input=stereo_input, slop=slop):
-            interrupts.check()
-            frames += 1
-            if not source.has_labels(frame):
-                continue
-            matched += 1
-            inputs = query_feature_input(query, frame.left, frame.right)
-            label_image = source.labels(frame, inputs.disparity)
-            if label_image is None:
-                continue
-            ctx = FeatureContext(inputs)
-            for name in feature_sets:
-                parts[name].append(frame_samples(name, ctx, label_image, rng, max_per_class=max_per_class))
-        if source.bag is not None and not matched:
-            raise SelfContraError(
-                f"none of the {len(source.bag.images)} label images of {labels} (stamps {source.bag.stamp_range()}) "
-                f"matches the left image stamp of one of the {frames} frames of {data}; "
-                "were the labels made from this bag?"
-            )
-    if not any(parts.values()):
+    params = training_matcher(pairs, matcher)
+    parts = [
+        input_samples(
+            data,
+            labels,
+            feature_sets,
+            params,
+            input_rng(seed, position),
+            max_per_class=max_per_class,
+            max_per_input=max_per_input,
+            namespace=namespace,
+            stereo_input=stereo_input,
+            slop=slop,
+        )
+        for position, ((data, labels), stereo_input) in enumerate(zip(pairs, bag_inputs, strict=True))
+    ]
+    if not any(part.labelled for part in parts):
         raise SelfContraError(f"no frame of {[str(d) for d, _ in pairs]} has labels to train on")
-    return {name: merge_samples(p) for name, p in parts.items()}, params
+    return merge_input_samples(parts, feature_sets), params
 
 
 def train_command(
@@ -323,20 +442,48 @@ def train_command(
         stereo_inputs=stereo_inputs,
         slop=slop,
     )
+    return train_and_save(samples[features], params, pairs, out, n_jobs=n_jobs, forest=forest, started=start)
+
+
+def train_and_save(
+    samples: Samples,
+    params: MatcherParams,
+    pairs: Sequence[tuple[str | Path, str | Path]],
+    out: str | Path,
+    *,
+    n_jobs: int | None = None,
+    forest: Mapping[str, Any] | None = None,
+    started: float | None = None,
+) -> dict[str, Any]:
+    """Train the forest on a run's gathered samples and write it to ``out``: the end of :func:`train_command`.
+
+    Args:
+        samples: the run's samples of one feature set (:func:`collect_samples`).
+        params: the query algorithm they were computed with (stored in the model).
+        pairs: the ``(data, labels)`` pairs they came from (stored in the model).
+        out: model file (:func:`~selfcontra_ros.confidence.forest.model_path`).
+        n_jobs: scikit-learn workers.
+        forest: overrides of the forest constants.
+        started: ``time.perf_counter()`` at the run's start, for ``seconds`` (None: now).
+
+    Returns:
+        Summary: ``model`` path, ``feature_set``, ``samples``, ``frames``, ``positive_share``, ``seconds``.
+    """
+    start = time.perf_counter() if started is None else started
     kinds = {GT if str(labels) == GT else "self" for _, labels in pairs}
     metadata = {
         "matcher": asdict(params),
         "label_source": kinds.pop() if len(kinds) == 1 else "mixed",
         "sources": [{"data": str(d), "labels": str(lab)} for d, lab in pairs],
     }
-    model = train(samples[features], TrainParams(forest=dict(forest or {}), n_jobs=n_jobs, metadata=metadata))
+    model = train(samples, TrainParams(forest=dict(forest or {}), n_jobs=n_jobs, metadata=metadata))
     path = save_model(model, out)
     return {
         "model": str(path),
-        "feature_set": features,
-        "samples": int(samples[features].labels.size),
-        "frames": samples[features].frames,
-        "positive_share": float(samples[features].labels.mean()),
+        "feature_set": samples.feature_set,
+        "samples": int(samples.labels.size),
+        "frames": samples.frames,
+        "positive_share": float(samples.labels.mean()),
         "seconds": time.perf_counter() - start,
     }
 
