@@ -290,6 +290,87 @@ def _cmd_evaluate_confidence(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_batch_label(args: argparse.Namespace) -> int:
+    from selfcontra_ros.batch.label import batch_label
+
+    summary = batch_label(
+        args.inputs,
+        Path(args.out),
+        params_file=args.params,
+        address=args.address,
+        cpus_per_task=args.cpus_per_task,
+        resume=args.resume,
+    )
+    return 0 if summary["totals"]["failed"] == 0 else 1
+
+
+def _cmd_batch_train(args: argparse.Namespace) -> int:
+    from selfcontra_ros.batch.train import batch_train
+    from selfcontra_ros.matching.base import MatcherParams
+    from selfcontra_ros.threads import cap_jobs
+
+    summary = batch_train(
+        args.features,
+        Path(args.labels_from),
+        args.data,
+        Path(args.out),
+        address=args.address,
+        cpus_per_task=args.cpus_per_task,
+        matcher=MatcherParams(algorithm=args.algorithm) if args.algorithm else None,
+        max_per_input=args.max_per_input,
+        n_jobs=cap_jobs(args.jobs),
+    )
+    print(
+        f"trained {summary['feature_set']} forest on {summary['samples']} samples from {summary['frames']} frames "
+        f"of {len(summary['inputs'])} input(s) in {summary['seconds']:.0f} s: {summary['model']}"
+    )
+    return 0
+
+
+def _add_batch_parser(sub: Any) -> None:
+    """``selfcontra batch label`` / ``batch train`` (:mod:`selfcontra_ros.batch`)."""
+    batch = sub.add_parser(
+        "batch",
+        help="label or train on many bags / sequences at once, one Ray task per input (local Ray cluster by default)",
+        description="Without Ray installed (pip install '.[cluster]') the inputs run one after another here.",
+    )
+    jobs = batch.add_subparsers(dest="batch_command", required=True)
+    label = jobs.add_parser(
+        "label",
+        help="label every input as 'selfcontra label' does, into OUT_DIR/<input name>/, with summary.json",
+        description="Each input (bag, bag folder, KITTI sequence, odometry root; globs) is one task writing "
+        "OUT_DIR/<name>/ atomically. A failed input is reported and the others go on (exit status 1).",
+    )
+    label.add_argument("inputs", nargs="+", metavar="INPUT", help="bags, sequence folders, odometry roots, globs")
+    label.add_argument("--out", required=True, metavar="OUT_DIR", help="output folder (one subfolder per input)")
+    label.add_argument("--params", default=None, help="parameter YAML (default: the package's config/labeler.yaml)")
+    label.add_argument("--resume", action="store_true", help="skip inputs with a complete result in OUT_DIR")
+    label.set_defaults(handler=_cmd_batch_label)
+    train = jobs.add_parser(
+        "train",
+        help="train a confidence forest on batch-labelled inputs, their samples drawn in parallel",
+        description="The same model as 'selfcontra train' with --labels OUT_DIR/<name> per --data (same seed).",
+    )
+    train.add_argument("--features", required=True, choices=("ensemble", "gcp", "park"), help="feature set")
+    train.add_argument("--labels-from", required=True, metavar="OUT_DIR", help="the output folder of 'batch label'")
+    train.add_argument("--data", nargs="+", required=True, metavar="INPUT", help="the labelled inputs (globs)")
+    train.add_argument("--out", required=True, help="model file to write (.npz)")
+    train.add_argument(
+        "--algorithm", choices=("sgbm", "bm", "census_sgm"), default=None, help="query algorithm if labels name none"
+    )
+    train.add_argument("--max-per-input", type=int, default=None, help="cap on one input's samples (default none)")
+    train.add_argument("--jobs", type=int, default=None, help="scikit-learn worker processes of the training")
+    train.set_defaults(handler=_cmd_batch_train)
+    for parser in (label, train):
+        parser.add_argument(
+            "--address",
+            default=None,
+            help="Ray cluster: local (default: start one on this machine, loopback only), auto (the cluster "
+            "'ray start' joined) or ray://HOST:PORT",
+        )
+        parser.add_argument("--cpus-per-task", type=int, default=1, help="CPUs (and threads) per task (default 1)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Return the argument parser of the ``selfcontra`` command."""
     parser = argparse.ArgumentParser(
@@ -454,6 +535,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_bag_data_options(evaluate, "a --data bag")
     evaluate.set_defaults(handler=_cmd_evaluate_confidence)
+    _add_batch_parser(sub)
     return parser
 
 
