@@ -4,7 +4,8 @@ An argument may be
 
 - a rosbag2 bag (folder with ``metadata.yaml``, or an ``.mcap`` file);
 - a KITTI-layout sequence folder (``ROOT/sequences/XX`` with ``image_0``/``image_1``);
-- a KITTI odometry root (``ROOT`` with ``sequences/``): one entry per sequence in it;
+- a KITTI odometry root (``ROOT`` with ``sequences/``): one entry per sequence in it
+  (a root holding one sequence is kept as given, as ``selfcontra label ROOT`` takes it);
 - a glob (``bags/*.mcap``, ``recordings/2026-*``), expanded in sorted order; a glob
   matching nothing is an error, as is a plain path that does not exist.
 
@@ -52,14 +53,17 @@ def input_name(path: Path | str) -> str:
         return path.stem if path.is_file() else path.name
     if path.parent.name == "sequences":
         return f"{path.parent.parent.resolve().name}_{path.name}"
+    sequences = _sequence_folders(path)
+    if len(sequences) == 1:
+        return f"{path.resolve().name}_{sequences[0].name}"
     return path.resolve().name
 
 
-def _sequences_of_root(root: Path) -> list[Path]:
-    folders = sorted(p for p in (root / "sequences").iterdir() if p.is_dir())
-    if not folders:
-        raise BatchError(f"odometry root {root} holds no sequence folder in {root / 'sequences'}")
-    return folders
+def _sequence_folders(root: Path) -> list[Path]:
+    """The sequence folders of an odometry root (none when ``root`` is not one)."""
+    if not (root / "sequences").is_dir():
+        return []
+    return sorted(p for p in (root / "sequences").iterdir() if p.is_dir())
 
 
 def _expand_one(argument: str) -> list[Path]:
@@ -76,7 +80,11 @@ def _expand_one(argument: str) -> list[Path]:
     expanded: list[Path] = []
     for path in paths:
         if input_kind(path) == SEQUENCE and (path / "sequences").is_dir():
-            expanded.extend(_sequences_of_root(path))
+            sequences = _sequence_folders(path)
+            if not sequences:
+                raise BatchError(f"odometry root {path} holds no sequence folder in {path / 'sequences'}")
+            # A root with one sequence stays as given (as 'selfcontra label ROOT' takes it); several: one each.
+            expanded.extend([path] if len(sequences) == 1 else sequences)
         else:
             expanded.append(path)
     return expanded
