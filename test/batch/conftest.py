@@ -15,10 +15,12 @@ import shutil
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 from selfcontra_ros.bags.kitti2mcap import kitti_to_mcap
+from selfcontra_ros.batch.label import KILL_MARKER_ENV, batch_label
 from selfcontra_ros.cli import main
 from selfcontra_ros.datasets.synthetic import write_sequence
 
@@ -130,3 +132,21 @@ def references(batch_inputs: dict[str, Path], tmp_path_factory: pytest.TempPathF
             out[name] = root / name
             _label(source, out[name])
     return out
+
+
+@pytest.fixture(scope="session")
+def batch_run(
+    ray_cluster: set[int], batch_inputs: dict[str, Path], tmp_path_factory: pytest.TempPathFactory
+) -> tuple[Path, dict[str, Any], Path, str]:
+    """The batch of all inputs on Ray, with the test hook killing one worker once: (OUT_DIR, summary, marker, table)."""
+    out = tmp_path_factory.mktemp("batch") / "out"
+    marker = out.parent / "killed.marker"
+    printed: list[str] = []
+    os.environ[KILL_MARKER_ENV] = str(marker)
+    try:
+        summary = batch_label(
+            [str(p) for p in batch_inputs.values()], out, params_file=FLUSH, progress=False, echo=printed.append
+        )
+    finally:
+        del os.environ[KILL_MARKER_ENV]
+    return out, summary, marker, "\n".join(printed)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
 import re
 import shutil
 import sys
@@ -60,24 +59,6 @@ def assert_same_result(result: Path, reference: Path) -> None:
 
 def _partials(out: Path) -> list[Path]:
     return [p for p in out.iterdir() if ".partial-" in p.name]
-
-
-@pytest.fixture(scope="module")
-def batch_run(
-    ray_cluster: set[int], batch_inputs: dict[str, Path], tmp_path_factory: pytest.TempPathFactory
-) -> tuple[Path, dict[str, Any], Path, str]:
-    """The batch of all inputs on Ray, with the test hook killing one worker once: (OUT_DIR, summary, marker, table)."""
-    out = tmp_path_factory.mktemp("batch") / "out"
-    marker = out.parent / "killed.marker"
-    printed: list[str] = []
-    os.environ[KILL_MARKER_ENV] = str(marker)
-    try:
-        summary = batch_label(
-            [str(p) for p in batch_inputs.values()], out, params_file=FLUSH, progress=False, echo=printed.append
-        )
-    finally:
-        del os.environ[KILL_MARKER_ENV]
-    return out, summary, marker, "\n".join(printed)
 
 
 def test_batch_gives_the_labels_and_metrics_of_label(
