@@ -105,7 +105,8 @@ def expand_inputs(arguments: Iterable[str | Path]) -> list[BatchInput]:
     names: dict[str, Path] = {}
     for argument in arguments:
         for path in _expand_one(str(argument)):
-            resolved = path.resolve()
+            sequences = _sequence_folders(path)
+            resolved = (sequences[0] if len(sequences) == 1 else path).resolve()  # a root is its one sequence
             if resolved in seen:
                 continue
             seen.add(resolved)
