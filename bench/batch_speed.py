@@ -43,6 +43,7 @@ from selfcontra_ros.bags.reader import open_bag
 from selfcontra_ros.batch.engine import SequentialEngine, local_ray_environment, start_local_cluster
 from selfcontra_ros.batch.label import batch_label
 from selfcontra_ros.datasets.synthetic import write_sequence
+from selfcontra_ros.threads import limit_threads
 
 BAGS = (("street", "street", 1), ("orbit", "orbit", 1), ("room", "room", 1), ("street2", "street", 2))
 CPUS = 2
@@ -88,9 +89,8 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="batch_speed_") as scratch:
         root = Path(args.keep) if args.keep else Path(scratch)
         bags = _make_bags(root, args.frames, width, height)
-        sequential = _run(
-            "sequential", bags, root / "sequential", params_file=FLUSH, engine=SequentialEngine(), cpus_per_task=CPUS
-        )
+        limit_threads(CPUS)  # the sequential run: this process's pools at 2 threads
+        sequential = _run("sequential", bags, root / "sequential", params_file=FLUSH, engine=SequentialEngine())
         started = time.perf_counter()
         start_local_cluster(CPUS)
         ray_start = time.perf_counter() - started

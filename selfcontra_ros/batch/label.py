@@ -150,7 +150,12 @@ def _number(value: Any) -> float:
 
 
 def label_one(
-    source: str, name: str, out_dir: str, params_file: str | None, threads: int, kill_marker: str | None = None
+    source: str,
+    name: str,
+    out_dir: str,
+    params_file: str | None,
+    threads: int | None,
+    kill_marker: str | None = None,
 ) -> dict[str, Any]:
     """Label one input into ``out_dir/name``, atomically; the body of one batch task (pure but for its output).
 
@@ -159,7 +164,8 @@ def label_one(
         name: its output name (:func:`~selfcontra_ros.batch.inputs.input_name`).
         out_dir: the batch's output folder (exists).
         params_file: parameter YAML; None: the package's defaults.
-        threads: thread cap of the labeler's pools (the task's CPUs).
+        threads: thread cap of the labeler's pools (a Ray task's CPUs); None keeps the process's cap
+            (in this process: ``selfcontra --threads``).
         kill_marker: the test hook's marker file (module docstring); None off.
 
     Returns:
@@ -167,7 +173,8 @@ def label_one(
         ``pid``) or, when labelling raised, ``status`` ``failed`` and ``error``.
     """
     started = time.perf_counter()
-    limit_threads(threads)
+    if threads is not None:
+        limit_threads(threads)
     out = Path(out_dir)
     final = out / name
     _remove_partials(out, name)
@@ -331,7 +338,8 @@ def batch_label(
         params_file: parameter YAML of every input; None: the package's defaults.
         address: Ray cluster (:func:`~selfcontra_ros.batch.engine.open_engine`): None/``"local"``, ``"auto"``,
             ``"ray://HOST:PORT"``.
-        cpus_per_task: CPUs Ray reserves per task; the labeler's thread pools are capped at it.
+        cpus_per_task: CPUs Ray reserves per task; the labeler's thread pools are capped at it (on Ray;
+            without Ray the process's own cap applies).
         resume: skip inputs with a complete result in ``out_dir``.
         progress: a progress bar over the finished inputs.
         echo: where the engine line and the table go (None: silent).
@@ -356,10 +364,12 @@ def batch_label(
     own_engine = engine is None
     if engine is None:
         engine = open_engine(address, cpus_per_task=cpus_per_task, inputs=len(todo), echo=echo)
+    # A Ray task's pools get its CPUs; in this process they keep the cap the caller set (selfcontra --threads).
+    threads = cpus_per_task if engine.remote else None
     kill_marker = os.environ.get(KILL_MARKER_ENV) or None
     if not engine.remote:  # the hook kills a Ray worker; in this process it would end the batch
         kill_marker = None
-    calls = [(str(item.path), item.name, str(out), params, cpus_per_task, kill_marker) for item in todo]
+    calls = [(str(item.path), item.name, str(out), params, threads, kill_marker) for item in todo]
     status = "interrupted"
     bar = tqdm(total=len(items), initial=len(entries), desc="batch label", unit="input", disable=not progress)
     try:

@@ -57,7 +57,7 @@ def sample_one(
     seed: int,
     max_per_class: int,
     max_per_input: int | None,
-    threads: int,
+    threads: int | None,
 ) -> dict[str, Any]:
     """The samples of one ``(data, labels)`` pair as plain arrays; the body of one batch-train task.
 
@@ -65,7 +65,8 @@ def sample_one(
         ``features`` (N, F) float32, ``labels`` (N,) bool, ``frames`` (images that gave samples),
         ``read`` (frames read), ``labelled`` (frames with labels); or ``error`` when sampling raised.
     """
-    limit_threads(threads)
+    if threads is not None:  # a Ray task's CPUs; None: this process's own cap
+        limit_threads(threads)
     try:
         part = input_samples(
             data,
@@ -144,13 +145,14 @@ def batch_train(
         raise BatchError(f"none of the {len(items)} inputs has a complete label result in {root}")
     pairs = [(str(item.path), str(root / item.name)) for item in used]
     params = training_matcher(pairs, matcher)
-    calls = [
-        (position, d, lab, features, asdict(params), seed, max_per_class, max_per_input, cpus_per_task)
-        for position, (d, lab) in enumerate(pairs)
-    ]
     own_engine = engine is None
     if engine is None:
-        engine = open_engine(address, cpus_per_task=cpus_per_task, inputs=len(calls), echo=echo)
+        engine = open_engine(address, cpus_per_task=cpus_per_task, inputs=len(pairs), echo=echo)
+    threads = cpus_per_task if engine.remote else None
+    calls = [
+        (position, d, lab, features, asdict(params), seed, max_per_class, max_per_input, threads)
+        for position, (d, lab) in enumerate(pairs)
+    ]
     results: dict[int, dict[str, Any]] = {}
     try:
         if echo is not None:
