@@ -67,11 +67,34 @@ def _alive(pids: set[int]) -> set[int]:
     return alive
 
 
+#: The running cluster's process ids (empty when none runs); the last batch test stops it.
+_CLUSTER: dict[str, set[int]] = {}
+HERE = Path(__file__).resolve().parent
+
+
+def _stop_cluster() -> None:
+    """Shut Ray down and wait until none of its processes is left (assert)."""
+    before = _CLUSTER.pop("pids", None)
+    if before is None:
+        return
+    import ray
+
+    started = before | _descendants(os.getpid())  # with the workers Ray started since (retries)
+    ray.shutdown()
+    deadline = time.monotonic() + 30
+    while _alive(started) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    left = _alive(started)
+    assert not left, f"Ray processes left running after shutdown: {sorted(left)}"
+
+
 @pytest.fixture(scope="session")
 def ray_cluster() -> Iterator[set[int]]:
     """The session's local Ray cluster, started by the package's own :func:`start_local_cluster`.
 
-    Yields the ids of the processes Ray started; after the shutdown none may be left.
+    Yields the ids of the processes Ray started. It is stopped after the last test of this folder
+    (:func:`pytest_runtest_teardown`), so the rest of the suite runs without it, and at the latest
+    at the end of the session; after the shutdown none of its processes may be left.
     """
     if importlib.util.find_spec("ray") is None:  # not importorskip: Ray must not be imported before its environment
         pytest.skip("Ray is not installed (the [cluster] extra)")
@@ -81,19 +104,19 @@ def ray_cluster() -> Iterator[set[int]]:
     start_local_cluster(2, object_store_bytes=OBJECT_STORE_BYTES)
     import ray
 
-    before = set()
+    _CLUSTER["pids"] = set()
     try:
         ray.get(ray.remote(lambda: 0).remote())  # a worker is up: the process tree is complete
-        before = _descendants(os.getpid())
-        yield before
+        _CLUSTER["pids"] = _descendants(os.getpid())
+        yield _CLUSTER["pids"]
     finally:
-        started = before | _descendants(os.getpid())  # with the workers Ray started since (retries)
-        ray.shutdown()
-        deadline = time.monotonic() + 30
-        while _alive(started) and time.monotonic() < deadline:
-            time.sleep(0.2)
-        left = _alive(started)
-        assert not left, f"Ray processes left running after shutdown: {sorted(left)}"
+        _stop_cluster()
+
+
+def pytest_runtest_teardown(item: pytest.Item, nextitem: pytest.Item | None) -> None:
+    """After the last test of this folder, stop the cluster: the tests after it (ROS timing) run without Ray."""
+    if _CLUSTER and (nextitem is None or HERE not in Path(nextitem.path).resolve().parents):
+        _stop_cluster()
 
 
 def _label(source: Path, out: Path) -> None:
