@@ -67,18 +67,17 @@ def _alive(pids: set[int]) -> set[int]:
     return alive
 
 
-#: The running cluster's process ids (empty when none runs); the last batch test stops it.
-_CLUSTER: dict[str, set[int]] = {}
+#: The running cluster's ``ray`` module and process ids (empty when none runs); the last batch test stops it.
+_CLUSTER: dict[str, Any] = {}
 HERE = Path(__file__).resolve().parent
 
 
 def _stop_cluster() -> None:
     """Shut Ray down and wait until none of its processes is left (assert)."""
     before = _CLUSTER.pop("pids", None)
-    if before is None:
+    ray = _CLUSTER.pop("ray", None)  # kept: a test may hide the module (sys.modules["ray"] = None) until after this
+    if before is None or ray is None:
         return
-    import ray
-
     started = before | _descendants(os.getpid())  # with the workers Ray started since (retries)
     ray.shutdown()
     deadline = time.monotonic() + 30
@@ -104,7 +103,7 @@ def ray_cluster() -> Iterator[set[int]]:
     start_local_cluster(2, object_store_bytes=OBJECT_STORE_BYTES)
     import ray
 
-    _CLUSTER["pids"] = set()
+    _CLUSTER.update(pids=set(), ray=ray)
     try:
         ray.get(ray.remote(lambda: 0).remote())  # a worker is up: the process tree is complete
         _CLUSTER["pids"] = _descendants(os.getpid())

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import sys
 from pathlib import Path
 from typing import Any
@@ -10,6 +11,7 @@ import numpy as np
 import pytest
 
 from selfcontra_ros.batch.train import batch_train
+from selfcontra_ros.cli import main
 from selfcontra_ros.confidence.commands import collect_samples, train_command
 from selfcontra_ros.errors import BatchError
 
@@ -70,3 +72,19 @@ def test_batch_train_without_ray_and_without_labels(
     assert summary["engine"].startswith("this process") and any("Ray is not installed" in n for n in notes)
     with pytest.raises(BatchError, match="none of the 1 inputs has a complete label result"):
         batch_train("gcp", tmp_path / "empty", data[:1], tmp_path / "n.npz", progress=False, echo=None)
+
+
+def test_the_batch_train_command(
+    labelled: tuple[Path, list[str]],
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    out, data = labelled
+    monkeypatch.setitem(sys.modules, "ray", None)
+    args = ["batch", "train", "--features", "gcp", "--labels-from", str(out), "--data", data[1], data[3]]
+    assert main([*args, "--out", str(tmp_path / "cli.npz"), "--max-per-input", "60"]) == 0
+    printed = capsys.readouterr().out
+    assert "left out (no complete label result" in printed and "corrupt" in printed
+    assert re.search(r"trained gcp forest on 60 samples from \d+ frames of 1 input\(s\)", printed)
+    assert (tmp_path / "cli.npz").is_file()
