@@ -11,7 +11,8 @@ a bag; :func:`selfcontra_ros.pipeline.label_input` picks the front end), with
 its ``metrics.json``. A task labels into ``OUT_DIR/.<name>.partial-XXXX/<name>``
 and moves the finished result into place with one ``os.replace``: a task that
 fails, is interrupted or whose worker dies leaves no ``OUT_DIR/<name>``, only
-a hidden partial folder, which the next attempt at that input removes.
+a hidden partial folder, which the next attempt at that input removes (so
+one batch at a time writes into an ``OUT_DIR``).
 
 **Resume.** With ``resume=True`` an input whose ``OUT_DIR/<name>/metrics.json``
 says ``"status": "complete"`` is not labelled again (it can only be there
