@@ -303,9 +303,13 @@ _MW_DASH = (18.0, 6.0 / 18.0)  # lane-line period (m) and duty: 6 m lines, 12 m 
 
 
 def _tex_motorway(p: F64, n: F64, fp: F64, prm: F64, noise: ValueNoise) -> F64:
-    """Motorway ground: asphalt with dashed lane lines and solid edge lines, a grass median and verges."""
+    """Motorway ground: asphalt with dashed lane lines and solid edge lines, a grass median and verges.
+
+    Worn asphalt and mown verges have little contrast (unlike the street's), so
+    most of the texture a camera finds on a motorway is far away.
+    """
     x, z = p[0], p[2]
-    albedo = 0.28 + 0.2 * noise.fbm(p, fp, 0.25, 8, gain=0.85)
+    albedo = 0.3 + 0.1 * noise.fbm(p, fp, 1.0, 8, gain=0.75)
     dash = pulse(z, _MW_DASH[0], _MW_DASH[1], fp)
     lines = np.zeros_like(x)
     for centre in (-0.5 * _MW_LANE, 0.5 * _MW_LANE, _MW_ONCOMING - _MW_LANE, _MW_ONCOMING - 2 * _MW_LANE):
@@ -317,7 +321,7 @@ def _tex_motorway(p: F64, n: F64, fp: F64, prm: F64, noise: ValueNoise) -> F64:
     far_left = _MW_ONCOMING - 3 * _MW_LANE - _MW_SHOULDER
     grass = (x > far_right) | (x < far_left) | ((x < _MW_EDGE_LEFT - 0.6) & (x > _MW_ONCOMING + 0.6))
     if grass.any():
-        albedo[grass] = _tex_grass(p[:, grass], n[:, grass], fp[grass], prm[:, grass], noise)
+        albedo[grass] = 0.42 + 0.08 * noise.fbm(p[:, grass], fp[grass], 0.15, 8, gain=0.75)
     return albedo.astype(np.float64)
 
 
@@ -883,17 +887,25 @@ def _highway(
         prims.append(Box((x, ground - 0.6, zc), (0.03, 0.17, zh), _RAIL, (metal,)))
         for z in np.arange(z_start, z_end, post_step):
             prims.append(Box((x + 0.1 * np.sign(x), ground - 0.4, float(z)), (0.06, 0.4, 0.06), _RAIL, (0.7 * metal,)))
-    # Sparse far structure: single trees beside the road, wooded hills and a few buildings far off.
+    # Sparse far structure: trees and bushes beside the road, wooded hills and a few buildings far off.
+    z = z_start + rng.uniform(0.0, 10.0)
+    while z < z_end:
+        side = float(rng.choice([-1.0, 1.0]))
+        lateral = rng.uniform(3.0, 12.0)
+        x = (_MW_EDGE_RIGHT + _MW_SHOULDER + lateral) if side > 0 else (_MW_ONCOMING - 3 * _MW_LANE - lateral)
+        size = rng.uniform(0.6, 1.5)
+        prims.append(Sphere((x, ground - 0.6 * size, z), size, _FOLIAGE, (rng.uniform(0.25, 0.45),)))
+        z += rng.uniform(4.0, 15.0)
     z = z_start + rng.uniform(0.0, 20.0)
     while z < z_end:
         side = float(rng.choice([-1.0, 1.0]))
-        lateral = rng.uniform(14.0, 60.0)
+        lateral = rng.uniform(10.0, 60.0)
         x = (_MW_EDGE_RIGHT + lateral) if side > 0 else (_MW_ONCOMING - 3 * _MW_LANE - lateral)
         crown = rng.uniform(2.0, 4.0)
         trunk_h = rng.uniform(2.0, 4.0)
         prims.append(Cylinder(x, z, rng.uniform(0.15, 0.3), ground - trunk_h, ground, _POLE, (rng.uniform(0.2, 0.4),)))
         prims.append(Sphere((x, ground - trunk_h - 0.8 * crown, z), crown, _FOLIAGE, (rng.uniform(0.2, 0.4),)))
-        z += rng.uniform(12.0, 45.0)
+        z += rng.uniform(6.0, 25.0)
     for side in (1.0, -1.0):
         z = z_start + rng.uniform(0.0, 60.0)
         while z < z_end + 200.0:

@@ -63,7 +63,9 @@ __all__ = [
 F64 = NDArray[np.float64]
 
 #: Frame statuses: the first three are reliable.
-STATUSES = ("first", "ok", "static", "few_features", "few_matches", "few_inliers", "high_error")
+STATUSES = (
+    "first", "ok", "static", "weak_scale", "few_features", "few_matches", "few_inliers", "implausible", "high_error",
+)  # fmt: skip
 _RELIABLE = frozenset(("first", "ok", "static"))
 
 
@@ -101,6 +103,34 @@ class VOParams:
         static_flow_px: median image motion of the inliers below this: the frame is ``static``.
         window: frames of the windowed bundle adjustment (<= 1 switches it off).
         seed: RANSAC seed (``cv2.setRNGSeed``) for reproducible poses.
+        consistent_tracks: matched features move to the tracked position of
+            the reference's point and their stereo is re-measured there.
+        max_step_change_m: a motion whose translation differs from the
+            constant-velocity prediction by more than this (metres) plus
+            ``max_step_change_ratio`` times the predicted step is implausible:
+            the largest rigid group is then taken to be a moving object, and
+            the next largest is tried (status ``implausible`` if it fails too).
+        max_step_change_ratio: see ``max_step_change_m``.
+        subpixel: the sub-pixel refinement of stereo matches: ``lk``
+            (Lucas-Kanade from the left feature), ``parabola`` (SAD at integer
+            disparities and a parabola) or ``none`` (the right ORB corner).
+        depth_weighting: the frame-to-frame refinement weights each residual
+            by the depth uncertainty of its triangulated point.
+        check_scale: frames whose step length is not trustworthy to
+            ``max_step_error_pct`` are flagged ``weak_scale`` (unreliable,
+            but their measured motion is kept and tracked from).
+        max_step_error_pct: the step-length error (percent of the step) a
+            reliable frame must stay within: its 3-sigma uncertainty must not
+            exceed it, its sensitivity to a ``disparity_bias_px`` disparity
+            bias not ``bias_share`` of it, and the windowed adjustment's change
+            of the step not ``adjustment_share`` of it.
+        disparity_bias_px: the systematic disparity error the scale check
+            guards against (pixels).
+        bias_share: see ``max_step_error_pct``.
+        adjustment_share: see ``max_step_error_pct``.
+        reanchor_after: a frame that gets no pose this many frames after the
+            reference (which its features are leaving) becomes the reference
+            itself, at its constant-velocity guess (0: never).
     """
 
     features: int = 2000
@@ -124,6 +154,17 @@ class VOParams:
     static_flow_px: float = 0.3
     window: int = 5
     seed: int = 0
+    consistent_tracks: bool = True
+    subpixel: str = "lk"
+    depth_weighting: bool = True
+    check_scale: bool = True
+    max_step_error_pct: float = 2.0
+    disparity_bias_px: float = 0.1
+    bias_share: float = 0.5
+    adjustment_share: float = 0.5
+    reanchor_after: int = 2
+    max_step_change_m: float = 0.3
+    max_step_change_ratio: float = 0.25
 
     def __post_init__(self) -> None:
         positive = ("features", "grid_rows", "grid_cols", "lk_window", "ransac_iterations", "min_inliers")
@@ -134,6 +175,8 @@ class VOParams:
             raise OdometryError(
                 f"VOParams needs 0 < min_disparity < max_disparity, got {self.min_disparity}, {self.max_disparity}"
             )
+        if self.subpixel not in ("lk", "parabola", "none"):
+            raise OdometryError(f"VOParams.subpixel must be lk, parabola or none, got {self.subpixel!r}")
         if not 0 < self.ratio <= 1:
             raise OdometryError(f"VOParams.ratio must be in (0, 1], got {self.ratio}")
 
@@ -156,6 +199,10 @@ class FrameQuality:
         rotation_deg: rotation since the previous frame, degrees.
         reference: the frame the pose was estimated from (-1 for the first frame).
         message: why the frame is unreliable (empty when reliable).
+        scale_std_pct: standard deviation of the frame-to-frame step length, percent of it (NaN without a pose).
+        scale_bias_pct: change of the step length, percent, if every disparity were
+            ``VOParams.disparity_bias_px`` smaller (NaN without a pose).
+        adjustment_change_pct: change of the step length by the windowed adjustment, percent (NaN without one).
     """
 
     index: int
@@ -171,6 +218,9 @@ class FrameQuality:
     rotation_deg: float = 0.0
     reference: int = -1
     message: str = ""
+    scale_std_pct: float = float("nan")
+    scale_bias_pct: float = float("nan")
+    adjustment_change_pct: float = float("nan")
 
 
 @dataclass(frozen=True)
@@ -264,6 +314,10 @@ class StereoOdometry:
         self._velocity: F64 | None = None  # T_ref_cur per frame of the last reliable step
         self._next_track = 0
         self._window: deque[_WindowFrame] = deque(maxlen=max(self.params.window, 1))
+        #: Left pixel positions (N, 2) of the last frame's inliers (empty when it got no pose): diagnostics.
+        self.last_inliers: F64 = np.zeros((0, 2))
+        #: Left pixel positions (N, 2) of the last frame's stereo features: diagnostics.
+        self.last_features: F64 = np.zeros((0, 2))
 
     # ------------------------------------------------------------------ features and stereo
 
@@ -352,7 +406,7 @@ class StereoOdometry:
         mask &= disparity <= p.max_disparity
         qi, ti = self._ratio_matches(descriptors, rdesc, mask)
         guess = np.column_stack([ruv[ti, 0], uv[qi, 1]])
-        refined, ok = self._lk(left, right, uv[qi], guess)
+        refined, ok = self._refine_right(left, right, uv[qi], guess)
         d = uv[qi, 0] - refined[:, 0]
         ok &= np.abs(refined[:, 1] - uv[qi, 1]) <= p.epipolar_tolerance_px
         ok &= np.abs(refined[:, 0] - guess[:, 0]) <= 3.0
@@ -362,6 +416,85 @@ class StereoOdometry:
         z = cam.focal_baseline / d
         points = np.column_stack([(uv[qi, 0] - cam.cx) * z / cam.fx, (uv[qi, 1] - cam.cy) * z / cam.fy, z])
         return _Features(uv[qi], d, descriptors[qi], points), int(uv.shape[0])
+
+    def _refine_right(
+        self, left: NDArray[np.uint8], right: NDArray[np.uint8], uv: F64, guess: F64
+    ) -> tuple[F64, NDArray[np.bool_]]:
+        """Sub-pixel right positions (N, 2) of left features ``uv`` started at ``guess``, by ``params.subpixel``."""
+        method = self.params.subpixel
+        if method == "lk":
+            return self._lk(left, right, uv, guess)
+        if method == "none":
+            return guess.copy(), np.ones(len(uv), dtype=bool)
+        return self._parabola(left, right, uv, guess)
+
+    def _parabola(
+        self, left: NDArray[np.uint8], right: NDArray[np.uint8], uv: F64, guess: F64
+    ) -> tuple[F64, NDArray[np.bool_]]:
+        """Right positions by SAD block matching at integer disparities and a parabola through the best three.
+
+        The classic sub-pixel step of block matchers, kept to measure its
+        bias against Lucas-Kanade (pixel locking: estimates pulled towards
+        integer disparities).
+        """
+        n, half, reach = len(uv), self.params.lk_window // 2, 3
+        if n == 0:
+            return np.zeros((0, 2)), np.zeros(0, bool)
+        offsets = np.arange(-half, half + 1, dtype=np.float32)
+        dx, dy = np.meshgrid(offsets, offsets)
+        rows = (uv[:, 1, None, None] + dy).astype(np.float32)
+        left_patch = cv2.remap(left, (uv[:, 0, None, None] + dx).astype(np.float32).reshape(n * dx.shape[0], -1),
+                               rows.reshape(n * dx.shape[0], -1), cv2.INTER_LINEAR).astype(np.float32)  # fmt: skip
+        base = np.rint(uv[:, 0] - guess[:, 0])
+        costs = np.empty((n, 2 * reach + 1))
+        for k, shift in enumerate(range(-reach, reach + 1)):
+            cols = (uv[:, 0, None, None] - (base + shift)[:, None, None] + dx).astype(np.float32)
+            patch = cv2.remap(right, cols.reshape(n * dx.shape[0], -1), rows.reshape(n * dx.shape[0], -1),
+                              cv2.INTER_LINEAR).astype(np.float32)  # fmt: skip
+            costs[:, k] = np.abs(patch - left_patch).reshape(n, -1).sum(axis=1)
+        best = np.clip(np.argmin(costs, axis=1), 1, 2 * reach - 1)
+        c0, c1, c2 = (costs[np.arange(n), best + j] for j in (-1, 0, 1))
+        curvature = c0 - 2.0 * c1 + c2
+        ok = curvature > 0
+        offset = np.where(ok, 0.5 * (c0 - c2) / np.where(ok, curvature, 1.0), 0.0)
+        disparity = base + (best - reach) + offset
+        return np.column_stack([uv[:, 0] - disparity, uv[:, 1]]), ok
+
+    def _move_features(
+        self,
+        left: NDArray[np.uint8],
+        right: NDArray[np.uint8],
+        cur: _Features,
+        ri: NDArray[np.int64],
+        ci: NDArray[np.int64],
+        cur_uv: F64,
+    ) -> tuple[NDArray[np.int64], NDArray[np.int64], F64]:
+        """Move matched features of the new frame to where the reference's point was tracked; re-measure stereo there.
+
+        The ORB corner a reference feature is matched to lies up to 3 px from
+        the tracked position of the same surface point; keeping the corner
+        would let a track slide over the surface from frame to frame (noise
+        the windowed adjustment reads as motion). Matches whose stereo fails
+        at the tracked position are dropped.
+        """
+        p = self.params
+        guess = cur_uv - np.column_stack([cur.disparity[ci], np.zeros(len(ci))])
+        refined, ok = self._refine_right(left, right, cur_uv, guess)
+        d = cur_uv[:, 0] - refined[:, 0]
+        ok &= np.abs(refined[:, 1] - cur_uv[:, 1]) <= p.epipolar_tolerance_px
+        ok &= np.abs(refined[:, 0] - guess[:, 0]) <= 1.5
+        ok &= (d >= p.min_disparity) & (d <= p.max_disparity)
+        ri, ci, cur_uv, d = ri[ok], ci[ok], cur_uv[ok], d[ok]
+        cur.uv[ci] = cur_uv
+        cur.disparity[ci] = d
+        cur.points[ci] = self._triangulate(cur_uv, d)
+        return ri, ci, cur_uv
+
+    def _triangulate(self, uv: F64, disparity: F64) -> F64:
+        """Left-camera 3D points (N, 3), metres, of left pixels (N, 2) with their disparities (N,)."""
+        cam = self.camera
+        z = cam.focal_baseline / disparity
+        return np.column_stack([(uv[:, 0] - cam.cx) * z / cam.fx, (uv[:, 1] - cam.cy) * z / cam.fy, z])
 
     # ------------------------------------------------------------------ projection and refinement
 
@@ -381,21 +514,78 @@ class StereoOdometry:
         res = np.column_stack([proj - uv, proj_right - u_right])
         return np.nan_to_num(res, nan=1e3)
 
+    def _depth_weights(self, points: F64, pose: F64) -> F64:
+        """Per residual (N, 3) weights ``1 / sqrt(1 + (J_z sigma_z / sigma_px)^2)`` of points (N, 3) moved by ``pose``.
+
+        A point triangulated from one stereo pair is uncertain along its depth,
+        ``sigma_z = z^2 / (fx b) sigma_d``; ``J_z`` is how far its projection
+        (left u, v and right u) moves per metre of depth. With the disparity
+        and the image positions equally noisy (``sigma_d = sigma_px``), far
+        points, whose depth is mostly noise, count for little.
+        """
+        cam = self.camera
+        eps = 1e-4
+        base_uv, base_right = self._project(points, pose)
+        moved_uv, moved_right = self._project(points * (1.0 + eps), pose)
+        z = np.maximum(points[:, 2], 1e-6)
+        dz = eps * z
+        jac = np.column_stack([moved_uv - base_uv, moved_right - base_right]) / dz[:, None]
+        spread = jac * (z * z / cam.focal_baseline)[:, None]
+        return np.nan_to_num(1.0 / np.sqrt(1.0 + spread**2), nan=0.0)
+
     def _refine_two_way(
         self, pose: F64, ref: _Features, cur: _Features, ri: NDArray[np.int64], ci: NDArray[np.int64], cur_uv: F64
-    ) -> F64:
-        """Refine ``T_cur_ref`` by robust least squares on the stereo reprojection error both ways."""
-        ref_right = cur_uv[:, 0] - cur.disparity[ci]
-        ref_uv_right = ref.uv[ri, 0] - ref.disparity[ri]
+    ) -> tuple[F64, float, float]:
+        """Refine ``T_cur_ref`` by robust least squares on the stereo reprojection error both ways.
 
-        def residuals(x: F64) -> F64:
+        Returns:
+            The refined ``T_cur_ref``; the standard deviation of its step
+            length from the normal equations (percent of the step); and how
+            much the step length would change (percent) if every disparity
+            were ``params.disparity_bias_px`` smaller, which is how strongly
+            the scale rests on far points.
+        """
+        p = self.params
+        cur_disparity, ref_disparity = cur.disparity[ci], ref.disparity[ri]
+        ref_points, cur_points = ref.points[ri], cur.points[ci]
+        if p.depth_weighting:
+            w_forward, w_backward = (
+                self._depth_weights(ref_points, pose),
+                self._depth_weights(cur_points, invert_pose(pose)),
+            )
+        else:
+            w_forward = w_backward = np.ones((len(ri), 3))
+
+        def residuals_of(x: F64, bias: float) -> F64:
             t = _pose_from_vector(x)
-            forward = self._stereo_residuals(ref.points[ri], t, cur_uv, ref_right)
-            backward = self._stereo_residuals(cur.points[ci], invert_pose(t), ref.uv[ri], ref_uv_right)
-            return np.concatenate([forward.ravel(), backward.ravel()])
+            rp = ref_points if bias == 0 else self._triangulate(ref.uv[ri], ref_disparity - bias)
+            cp = cur_points if bias == 0 else self._triangulate(cur.uv[ci], cur_disparity - bias)
+            forward = self._stereo_residuals(rp, t, cur_uv, cur_uv[:, 0] - (cur_disparity - bias))
+            backward = self._stereo_residuals(cp, invert_pose(t), ref.uv[ri], ref.uv[ri, 0] - (ref_disparity - bias))
+            return np.concatenate([(forward * w_forward).ravel(), (backward * w_backward).ravel()])
 
-        fit = least_squares(residuals, _vector_from_pose(pose), loss="huber", f_scale=1.0, method="trf", max_nfev=30)
-        return _pose_from_vector(fit.x)
+        fit = least_squares(
+            residuals_of, _vector_from_pose(pose), args=(0.0,), loss="huber", f_scale=1.0, method="trf", max_nfev=30
+        )
+        refined = _pose_from_vector(fit.x)
+        # The step's uncertainty and bias sensitivity, linearised at the solution with the Huber weights.
+        jac = np.asarray(fit.jac)
+        robust = np.sqrt(np.minimum(1.0, 1.0 / np.maximum(np.abs(fit.fun), 1e-12)))
+        step = fit.x[3:6]
+        length = float(np.linalg.norm(step))
+        if length < 1e-6:
+            return refined, float("nan"), float("nan")
+        direction = step / length
+        try:
+            covariance = np.linalg.inv(jac.T @ jac)
+        except np.linalg.LinAlgError:
+            return refined, float("inf"), float("inf")
+        sigma = 1.4826 * float(np.median(np.abs(fit.fun[fit.fun != 0]))) if np.any(fit.fun != 0) else 0.0
+        std_pct = 100.0 * sigma * float(np.sqrt(max(direction @ covariance[3:, 3:] @ direction, 0.0))) / length
+        change = (residuals_of(fit.x, p.disparity_bias_px) - fit.fun) * robust
+        dx = -covariance @ (jac.T @ change)
+        bias_pct = 100.0 * abs(float(np.linalg.norm(step + dx[3:6])) - length) / length
+        return refined, std_pct, bias_pct
 
     # ------------------------------------------------------------------ the frame step
 
@@ -417,6 +607,7 @@ class StereoOdometry:
         """
         p = self.params
         index = len(self.poses)
+        self.last_inliers = np.zeros((0, 2))
         gl, gr = _grey(left, "left"), _grey(right, "right")
         expected = (self.camera.height, self.camera.width)
         if gl.shape != expected or gr.shape != expected:
@@ -425,6 +616,7 @@ class StereoOdometry:
                 f"expected {expected[::-1]} from the camera calibration"
             )
         cur, n_features = self._stereo(gl, gr)
+        self.last_features = cur.uv
         common: dict[str, Any] = {
             "index": index,
             "stamp": float(stamp),
@@ -445,7 +637,10 @@ class StereoOdometry:
             quality = FrameQuality(
                 status=status, reliable=False, reference=ref_index, message=message, **common, **extra
             )
-            return self._record(guess_pose, quality)
+            result = self._record(guess_pose, quality)
+            if status != "few_features" and gap >= p.reanchor_after:
+                self._reanchor(index, gl, cur, guess_pose)
+            return result
 
         if n_features < p.min_features or len(cur.uv) < p.min_features // 2:
             return fail("few_features", f"too little texture: {n_features} features, {len(cur.uv)} with a stereo match")
@@ -459,28 +654,32 @@ class StereoOdometry:
         cur_uv, ok = self._lk(ref_image, gl, ref.uv[ri], cur.uv[ci])
         ok &= np.linalg.norm(cur_uv - cur.uv[ci], axis=1) <= 3.0
         ri, ci, cur_uv = ri[ok], ci[ok], cur_uv[ok]
+        if p.consistent_tracks:
+            ri, ci, cur_uv = self._move_features(gl, gr, cur, ri, ci, cur_uv)
         if len(ri) < p.min_matches:
             return fail("few_matches", f"only {len(ri)} matches with frame {ref_index} (need {p.min_matches})",
                         temporal_matches=len(ri))  # fmt: skip
 
-        cv2.setRNGSeed(p.seed)
-        rvec0, _ = cv2.Rodrigues(invert_pose(predicted)[:3, :3])
-        tvec0 = invert_pose(predicted)[:3, 3].reshape(3, 1).copy()
-        found, rvec, tvec, inliers = cv2.solvePnPRansac(
-            ref.points[ri].astype(np.float64), cur_uv.astype(np.float64), self.camera.K, None,
-            rvec=rvec0.copy(), tvec=tvec0, useExtrinsicGuess=velocity is not None,
-            iterationsCount=p.ransac_iterations, reprojectionError=p.ransac_threshold_px, confidence=0.999,
-            flags=cv2.SOLVEPNP_ITERATIVE,
-        )  # fmt: skip
-        if not found or inliers is None or len(inliers) < p.min_inliers:
-            n = 0 if inliers is None else len(inliers)
-            return fail("few_inliers", f"PnP RANSAC found {n} inliers of {len(ri)} matches (need {p.min_inliers})",
-                        temporal_matches=len(ri), inliers=n)  # fmt: skip
-        t_cur_ref = np.eye(4)
-        t_cur_ref[:3, :3] = cv2.Rodrigues(rvec)[0]
-        t_cur_ref[:3, 3] = tvec.ravel()
-        keep = inliers.ravel()
-        t_cur_ref = self._refine_two_way(t_cur_ref, ref, cur, ri[keep], ci[keep], cur_uv[keep])
+        everything = np.arange(len(ri))
+        t_cur_ref, keep = self._pnp_ransac(ref.points[ri], cur_uv, predicted, velocity is not None, everything)
+        if velocity is not None and len(keep) >= p.min_inliers and not self._plausible(t_cur_ref, predicted):
+            # The largest rigid group moves unlike the camera can (a vehicle filling the view, say): the
+            # static scene is the largest group among the rest, if it moves as the camera can.
+            first, largest = len(keep), (t_cur_ref, keep)
+            t_cur_ref, keep = self._pnp_ransac(ref.points[ri], cur_uv, predicted, True, np.setdiff1d(everything, keep))
+            flow = np.linalg.norm(cur_uv[largest[1]] - ref.uv[ri[largest[1]]], axis=1)
+            if (len(keep) < p.min_inliers or not self._plausible(t_cur_ref, predicted)) and (
+                np.median(flow) < p.static_flow_px
+            ):
+                t_cur_ref, keep = largest  # no other group, and the image stands still: the camera stopped
+            elif len(keep) < p.min_inliers or not self._plausible(t_cur_ref, predicted):
+                return fail("implausible", f"the largest rigid group of matches ({first}) moves unlike the "
+                            "constant-velocity prediction, and no other group does", temporal_matches=len(ri),
+                            inliers=first)  # fmt: skip
+        if len(keep) < p.min_inliers:
+            return fail("few_inliers", f"PnP RANSAC found {len(keep)} inliers of {len(ri)} matches "
+                        f"(need {p.min_inliers})", temporal_matches=len(ri), inliers=len(keep))  # fmt: skip
+        t_cur_ref, scale_std, scale_bias = self._refine_two_way(t_cur_ref, ref, cur, ri[keep], ci[keep], cur_uv[keep])
         # Inliers of the refined pose among all matches: both directions within the RANSAC threshold.
         forward = self._stereo_residuals(ref.points[ri], t_cur_ref, cur_uv, cur_uv[:, 0] - cur.disparity[ci])
         backward = self._stereo_residuals(
@@ -489,9 +688,11 @@ class StereoOdometry:
         err = np.maximum(np.abs(forward).max(axis=1), np.abs(backward).max(axis=1))
         inlier = err <= p.ransac_threshold_px * 1.5
         n_in = int(inlier.sum())
+        self.last_inliers = cur_uv[inlier]
         rms = float(np.sqrt(np.mean(forward[inlier] ** 2))) if n_in else float("nan")
         t_ref_cur = invert_pose(t_cur_ref)
-        extra = {"temporal_matches": len(ri), "inliers": n_in, "reprojection_error_px": rms}
+        extra = {"temporal_matches": len(ri), "inliers": n_in, "reprojection_error_px": rms,
+                 "scale_std_pct": scale_std, "scale_bias_pct": scale_bias}  # fmt: skip
         if n_in < p.min_inliers:
             return fail("few_inliers", f"{n_in} inliers after refinement (need {p.min_inliers})", **extra)
         if not rms <= p.max_reprojection_error_px:
@@ -515,8 +716,36 @@ class StereoOdometry:
         if status == "ok":
             self._window.append(_WindowFrame(index, pose, ids, cur.uv.copy(), cur.uv[:, 0] - cur.disparity))
             self._bundle_adjust()
-            return OdometryResult(self.poses[index].copy(), result.quality)
+            adjusted = invert_pose(self.poses[index - 1]) @ self.poses[index]
+            before = float(np.linalg.norm((invert_pose(self.poses[index - 1]) @ pose)[:3, 3]))
+            change = 100.0 * abs(float(np.linalg.norm(adjusted[:3, 3])) - before) / max(before, 1e-9)
+            quality = self._check_scale(replace(result.quality, adjustment_change_pct=change))
+            self.qualities[index] = quality
+            return OdometryResult(self.poses[index].copy(), quality)
         return result
+
+    def _check_scale(self, quality: FrameQuality) -> FrameQuality:
+        """Flag a measured frame ``weak_scale`` when its step length cannot be trusted to ``max_step_error_pct``.
+
+        Three signs: the step's statistical uncertainty (3 sigma), its
+        sensitivity to a ``disparity_bias_px`` bias of every disparity (a
+        scale resting on far points), and how far the windowed adjustment
+        moved the step from the frame-to-frame estimate.
+        """
+        p = self.params
+        reasons = []
+        if not 3.0 * quality.scale_std_pct <= p.max_step_error_pct:
+            reasons.append(f"3-sigma step uncertainty {3.0 * quality.scale_std_pct:.2f} %")
+        if not quality.scale_bias_pct <= p.max_step_error_pct * p.bias_share:
+            reasons.append(
+                f"a {p.disparity_bias_px:g} px disparity bias changes the step by {quality.scale_bias_pct:.2f} %"
+            )
+        if not quality.adjustment_change_pct <= p.max_step_error_pct * p.adjustment_share:
+            reasons.append(f"the window adjustment changed the step by {quality.adjustment_change_pct:.2f} %")
+        if not reasons or not p.check_scale:
+            return quality
+        return replace(quality, status="weak_scale", reliable=False,
+                       message="scale not constrained well enough: " + "; ".join(reasons))  # fmt: skip
 
     def _first_or_fail(self, image: NDArray[np.uint8], cur: _Features, common: dict[str, Any]) -> OdometryResult:
         """The first frame with enough stereo features anchors the world frame."""
@@ -532,6 +761,54 @@ class StereoOdometry:
         self._reference = (index, image, cur)
         self._window.append(_WindowFrame(index, np.eye(4), cur.track_ids, cur.uv.copy(), cur.uv[:, 0] - cur.disparity))
         return self._record(np.eye(4), FrameQuality(status="first", reliable=True, **common))
+
+    def _pnp_ransac(
+        self, points: F64, uv: F64, predicted: F64, use_guess: bool, subset: NDArray[np.int64]
+    ) -> tuple[F64, NDArray[np.int64]]:
+        """PnP RANSAC on the matches ``subset``: ``T_cur_ref`` and its inliers (indices into all matches)."""
+        p = self.params
+        none = (np.eye(4), np.zeros(0, np.int64))
+        if len(subset) < 6:
+            return none
+        cv2.setRNGSeed(p.seed)
+        guess = invert_pose(predicted)
+        rvec0, _ = cv2.Rodrigues(guess[:3, :3])
+        found, rvec, tvec, inliers = cv2.solvePnPRansac(
+            points[subset].astype(np.float64), uv[subset].astype(np.float64), self.camera.K, None,
+            rvec=rvec0.copy(), tvec=guess[:3, 3].reshape(3, 1).copy(), useExtrinsicGuess=use_guess,
+            iterationsCount=p.ransac_iterations, reprojectionError=p.ransac_threshold_px, confidence=0.999,
+            flags=cv2.SOLVEPNP_ITERATIVE,
+        )  # fmt: skip
+        if not found or inliers is None:
+            return none
+        t_cur_ref = np.eye(4)
+        t_cur_ref[:3, :3] = cv2.Rodrigues(rvec)[0]
+        t_cur_ref[:3, 3] = tvec.ravel()
+        return t_cur_ref, subset[inliers.ravel()]
+
+    def _plausible(self, t_cur_ref: F64, predicted: F64) -> bool:
+        """Whether motion ``T_cur_ref`` is within what a camera can change from the prediction ``T_ref_cur``."""
+        p = self.params
+        step = invert_pose(t_cur_ref)[:3, 3]
+        expected = predicted[:3, 3]
+        limit = p.max_step_change_m + p.max_step_change_ratio * float(np.linalg.norm(expected))
+        return float(np.linalg.norm(step - expected)) <= limit
+
+    def _reanchor(self, index: int, image: NDArray[np.uint8], cur: _Features, pose: F64) -> None:
+        """Make a frame without a measured pose the reference, at its guessed pose, with new tracks.
+
+        The reference it replaces is ``reanchor_after`` frames old: its
+        features leave the view, so matching against it would keep failing.
+        The next frames' motion is measured from here; only this frame's
+        absolute pose is a guess. The windowed adjustment starts over with it
+        as its fixed frame.
+        """
+        cur.track_ids = np.arange(self._next_track, self._next_track + len(cur.uv), dtype=np.int64)
+        self._next_track += len(cur.uv)
+        self._reference = (index, image, cur)
+        self._window.clear()
+        right = cur.uv[:, 0] - cur.disparity
+        self._window.append(_WindowFrame(index, pose.copy(), cur.track_ids, cur.uv.copy(), right))
 
     def _record(self, pose: F64, quality: FrameQuality) -> OdometryResult:
         previous = self.poses[-1] if self.poses else pose

@@ -1,0 +1,354 @@
+"""Accuracy of the stereo visual odometry: KITTI metrics on KITTI 06 and on synthetic street, orbit and highway.
+
+Runs :class:`~selfcontra_ros.odometry.stereo_vo.StereoOdometry` (package
+defaults, or ``--set name=value`` overrides of
+:class:`~selfcontra_ros.odometry.stereo_vo.VOParams`) over
+
+* the real KITTI odometry 06 sample (``--kitti``, frames 0-50), and
+* ``--scenes`` x ``--seeds`` synthetic sequences (``--frames`` frames at
+  ``--size``, KITTI size by default), rendered in this process so that the
+  vehicles' pixels are known (``SyntheticFrame.moving``),
+
+and prints one row per sequence:
+
+* the KITTI odometry metrics (:mod:`selfcontra_ros.odometry.metrics`, the
+  devkit's sub-sequence definition over 5-50 m, every frame a start):
+  translation (%) and rotation (deg/m) error;
+* the scale error: estimated path length / true path length - 1 (%);
+* reliable frames, and among them the *bad* ones: frames whose motion from
+  the previous frame is off by more than 2 % of its true length (the issue's
+  acceptance rule); the worst per-frame error of a reliable frame;
+* the share of stereo features and of pose inliers on moving vehicles
+  (highway; the odometry must not use them);
+* the odometry's time per frame (images in memory, rendering excluded).
+
+Then per scene the mean, standard deviation and worst of each figure, and
+last one JSON line with all of it. Rendered frames are kept in ``--cache``
+(``.npz``, no pickle) so that parameter comparisons render once.
+Examples::
+
+    python bench/odometry_accuracy.py --cache /tmp/vo_cache
+    python bench/odometry_accuracy.py --scenes highway --seeds 6-10 --cache /tmp/vo_cache
+    python bench/odometry_accuracy.py --scenes highway --seeds 1-5 --set subpixel=lk --cache /tmp/vo_cache
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import itertools
+import json
+import math
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from selfcontra_ros.cli import parse_size
+from selfcontra_ros.datasets.kitti import open_sequence
+from selfcontra_ros.datasets.synthetic import make_scene
+from selfcontra_ros.geometry import StereoCamera
+from selfcontra_ros.odometry.metrics import evaluate_odometry, path_lengths
+from selfcontra_ros.odometry.stereo_vo import StereoOdometry, VOParams
+
+DEFAULT_KITTI = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "kitti_odometry"
+#: A reliable frame whose motion from the previous frame is off by more than this share of its length is bad.
+BAD_STEP = 0.02
+
+Frames = list[tuple[NDArray[np.uint8], NDArray[np.uint8], NDArray[np.bool_] | None]]
+
+
+def parse_seeds(text: str) -> list[int]:
+    """``1-5`` or ``1,3,5`` (or both) as a sorted list of seeds."""
+    seeds: set[int] = set()
+    for part in text.split(","):
+        first, _, last = part.partition("-")
+        try:
+            seeds.update(range(int(first), int(last or first) + 1))
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected seeds such as 1-5 or 1,3,5, got {text!r}") from None
+    return sorted(seeds)
+
+
+def parse_overrides(items: list[str]) -> dict[str, Any]:
+    """``name=value`` pairs as VOParams keyword arguments, each value converted to the field's type."""
+    fields = {f.name: f for f in dataclasses.fields(VOParams)}
+    defaults = VOParams()
+    out: dict[str, Any] = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        if not sep or name not in fields:
+            raise SystemExit(f"--set expects NAME=VALUE with NAME one of {', '.join(fields)}, got {item!r}")
+        kind = type(getattr(defaults, name))
+        out[name] = (value.lower() in ("1", "true", "yes")) if kind is bool else kind(value)
+    return out
+
+
+def synthetic_frames(
+    scene: str, seed: int, frames: int, size: tuple[int, int], cache: Path | None
+) -> tuple[StereoCamera, Frames, NDArray[np.float64]]:
+    """Camera, ``(left, right, moving)`` per frame and true poses of a synthetic sequence (cached as .npz)."""
+    built = make_scene(scene, seed, size[0], size[1], frames=frames)
+    path = None if cache is None else cache / f"{scene}_{seed}_{frames}_{size[0]}x{size[1]}.npz"
+    if path is not None and path.exists():
+        with np.load(path, allow_pickle=False) as data:
+            moving = data["moving"] if data["moving"].size else None
+            out: Frames = [
+                (data["left"][k], data["right"][k], None if moving is None else moving[k]) for k in range(frames)
+            ]
+        return built.camera, out, built.poses(frames)
+    out = []
+    for k in range(frames):
+        f = built.render(k)
+        out.append((f.left, f.right, f.moving))
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        moving_all = np.stack([m for _, _, m in out]) if out[0][2] is not None else np.zeros(0, bool)
+        np.savez_compressed(
+            path, left=np.stack([a for a, _, _ in out]), right=np.stack([b for _, b, _ in out]), moving=moving_all
+        )
+    return built.camera, out, built.poses(frames)
+
+
+def kitti_frames(root: Path) -> tuple[StereoCamera, Frames, NDArray[np.float64]]:
+    """Camera, frames and ground-truth poses of a KITTI odometry sequence folder."""
+    seq = open_sequence(root)
+    if seq.poses is None:
+        raise SystemExit(f"{root} has no ground-truth poses")
+    frames: Frames = [(f.left, f.right, None) for f in seq]
+    return seq.camera, frames, seq.poses
+
+
+def step_errors(estimated: NDArray[np.float64], truth: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Per frame (from 1): |error of the motion from the previous frame| / its true length (0 for frame 0)."""
+    d_gt = np.linalg.inv(truth[:-1]) @ truth[1:]
+    d_est = np.linalg.inv(estimated[:-1]) @ estimated[1:]
+    error = np.linalg.inv(d_gt) @ d_est
+    length = np.maximum(np.linalg.norm(d_gt[:, :3, 3], axis=1), 1e-9)
+    return np.concatenate([[0.0], np.linalg.norm(error[:, :3, 3], axis=1) / length])
+
+
+def run_sequence(
+    name: str, camera: StereoCamera, frames: Frames, truth: NDArray[np.float64], params: VOParams
+) -> dict[str, Any]:
+    """Run the odometry over one sequence and measure it against the true poses."""
+    vo = StereoOdometry(camera, params)
+    moving_features = moving_inliers = features = inliers = 0
+    elapsed = 0.0
+    for left, right, moving in frames:
+        started = time.perf_counter()
+        result = vo.add(left, right)
+        elapsed += time.perf_counter() - started
+        if moving is not None and result.quality.reliable and len(vo.last_inliers):
+            uv = np.rint(vo.last_inliers).astype(np.int64)
+            uv[:, 0] = np.clip(uv[:, 0], 0, camera.width - 1)
+            uv[:, 1] = np.clip(uv[:, 1], 0, camera.height - 1)
+            moving_inliers += int(moving[uv[:, 1], uv[:, 0]].sum())
+            inliers += len(uv)
+        if moving is not None and len(vo.last_features):
+            fuv = np.rint(vo.last_features).astype(np.int64)
+            moving_features += int(moving[fuv[:, 1], fuv[:, 0]].sum())
+            features += len(fuv)
+    poses = np.stack(vo.poses)
+    reliable = np.array([q.reliable for q in vo.qualities])
+    metrics = evaluate_odometry(poses, truth)
+    steps = step_errors(poses, truth)
+    true_length = float(path_lengths(truth)[-1])
+    est_length = float(path_lengths(poses)[-1])
+    bad = reliable & (steps > BAD_STEP)
+    bad[0] = False
+    return {
+        "sequence": name,
+        "frames": len(frames),
+        "path_m": true_length,
+        "translation_pct": metrics.translation_error_pct,
+        "rotation_deg_per_m": metrics.rotation_error_deg_per_m,
+        "scale_pct": 100.0 * (est_length / true_length - 1.0),
+        "reliable": int(reliable.sum()),
+        "bad_reliable": int(bad.sum()),
+        "worst_reliable_step_pct": float(100.0 * steps[1:][reliable[1:]].max()) if reliable[1:].any() else math.nan,
+        "moving_feature_pct": 100.0 * moving_features / features if features else math.nan,
+        "moving_inlier_pct": 100.0 * moving_inliers / inliers if inliers else math.nan,
+        "ms_per_frame": 1000.0 * elapsed / len(frames),
+        "statuses": sorted({q.status for q in vo.qualities}),
+    }
+
+
+DISPARITY_BINS = (0.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 1000.0)
+
+
+def stereo_bias(scenes: list[str], seeds: list[int], size: tuple[int, int], methods: list[str]) -> dict[str, Any]:
+    """Disparity error of the odometry's stereo features against the ground truth, per sub-pixel method.
+
+    Every 6th frame of 30 of each sequence is rendered; features on a smooth
+    static surface (ground-truth disparity range < 0.25 px + 10 % within
+    11x11 pixels) are compared with the bilinear ground-truth disparity. Per
+    disparity bin: mean and standard deviation of the error (px) and the
+    depth bias it causes (mean of ``d_gt / d - 1``, %); overall: the share
+    of right sub-pixel phases within 0.2 px of an integer (0.4 without
+    pixel locking).
+    """
+    import cv2
+
+    out: dict[str, Any] = {}
+    for method in methods:
+        errors, truths, phases = [], [], []
+        for scene in scenes:
+            for seed in seeds:
+                built = make_scene(scene, seed, size[0], size[1], frames=30)
+                vo = StereoOdometry(built.camera, VOParams(subpixel=method))
+                for k in range(0, 30, 6):
+                    f = built.render(k)
+                    feats, _ = vo._stereo(f.left, f.right)
+                    gt = np.nan_to_num(f.disparity, nan=-1e3).astype(np.float32)
+                    u, v = feats.uv[:, 0].astype(np.float32), feats.uv[:, 1].astype(np.float32)
+                    d_gt = cv2.remap(gt, u.reshape(-1, 1), v.reshape(-1, 1), cv2.INTER_LINEAR).ravel()
+                    high, low = cv2.dilate(gt, np.ones((11, 11))), cv2.erode(gt, np.ones((11, 11)))
+                    ui, vi = np.rint(u).astype(np.int64), np.rint(v).astype(np.int64)
+                    smooth = (high[vi, ui] - low[vi, ui] < 0.25 + 0.1 * np.maximum(gt[vi, ui], 0)) & (low[vi, ui] > 0)
+                    if f.moving is not None:
+                        smooth &= ~f.moving[vi, ui]
+                    errors.append((feats.disparity - d_gt)[smooth])
+                    truths.append(d_gt[smooth])
+                    phases.append(((feats.uv[:, 0] - feats.disparity) % 1.0)[smooth])
+        e, d, ph = np.concatenate(errors), np.concatenate(truths), np.concatenate(phases)
+        gross = np.abs(e) >= 2.0
+        bins = []
+        for lo, hi in itertools.pairwise(DISPARITY_BINS):
+            m = (d >= lo) & (d < hi) & ~gross
+            if m.sum() < 10:
+                continue
+            bias = float(100.0 * np.mean(d[m] / (d[m] + e[m]) - 1))
+            bins.append({"disparity": [lo, hi], "features": int(m.sum()), "mean_px": float(e[m].mean()),
+                         "std_px": float(e[m].std()), "depth_bias_pct": bias})  # fmt: skip
+        near_integer = np.minimum(ph, 1.0 - ph) < 0.2
+        out[method] = {"features": int(e.size), "gross_pct": float(100.0 * gross.mean()),
+                       "mean_px": float(e[~gross].mean()), "near_integer_share": float(near_integer[~gross].mean()),
+                       "bins": bins}  # fmt: skip
+        print(f"subpixel={method}: {e.size} features, {100 * gross.mean():.1f} % off by >= 2 px, mean error "
+              f"{e[~gross].mean():+.3f} px, sub-pixel phases within 0.2 px of an integer "
+              f"{near_integer[~gross].mean():.2f} (0.40 unbiased)")  # fmt: skip
+        print("| disparity px | features | mean error px | std px | depth bias % |")
+        print("|---|---|---|---|---|")
+        for b in bins:
+            lo, hi = b["disparity"]
+            print(f"| {lo:g}-{hi:g} | {b['features']} | {b['mean_px']:+.3f} | {b['std_px']:.3f} | "
+                  f"{b['depth_bias_pct']:+.2f} |")  # fmt: skip
+    return out
+
+
+COLUMNS = (
+    ("translation_pct", "transl. %", "{:.2f}"),
+    ("rotation_deg_per_m", "rot. deg/m", "{:.4f}"),
+    ("scale_pct", "scale %", "{:+.2f}"),
+    ("reliable", "reliable", "{:d}"),
+    ("bad_reliable", "bad rel.", "{:d}"),
+    ("worst_reliable_step_pct", "worst step %", "{:.2f}"),
+    ("moving_feature_pct", "moving feat. %", "{:.1f}"),
+    ("moving_inlier_pct", "moving inl. %", "{:.1f}"),
+    ("ms_per_frame", "ms/frame", "{:.0f}"),
+)
+
+
+def _cell(value: Any, fmt: str) -> str:
+    if isinstance(value, float) and math.isnan(value):
+        return "-"
+    return fmt.format(value)
+
+
+def print_table(rows: list[dict[str, Any]]) -> None:
+    """One row per sequence (markdown)."""
+    print("| sequence | frames | path m | " + " | ".join(title for _, title, _ in COLUMNS) + " |")
+    print("|---" * (len(COLUMNS) + 3) + "|")
+    for r in rows:
+        cells = [_cell(r[key], fmt) for key, _, fmt in COLUMNS]
+        print(f"| {r['sequence']} | {r['frames']} | {r['path_m']:.1f} | " + " | ".join(cells) + " |")
+
+
+def summarise(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Per scene (the sequence name before '/'): mean, standard deviation and worst of the error figures."""
+    groups: dict[str, list[dict[str, Any]]] = {}
+    for r in rows:
+        groups.setdefault(r["sequence"].split("/")[0], []).append(r)
+    out: dict[str, dict[str, Any]] = {}
+    for scene, members in groups.items():
+        entry: dict[str, Any] = {"sequences": len(members)}
+        for key in ("translation_pct", "rotation_deg_per_m", "worst_reliable_step_pct", "ms_per_frame"):
+            values = np.array([m[key] for m in members], dtype=np.float64)
+            entry[key] = {"mean": float(np.nanmean(values)), "std": float(np.nanstd(values)),
+                          "worst": float(np.nanmax(values))}  # fmt: skip
+        scale = np.array([m["scale_pct"] for m in members])
+        entry["scale_pct"] = {"mean": float(scale.mean()), "std": float(scale.std()),
+                              "worst": float(scale[np.argmax(np.abs(scale))])}  # fmt: skip
+        entry["bad_reliable"] = int(sum(m["bad_reliable"] for m in members))
+        entry["unreliable"] = int(sum(m["frames"] - m["reliable"] for m in members))
+        out[scene] = entry
+    return out
+
+
+def _sequences(args: argparse.Namespace) -> Iterator[tuple[str, StereoCamera, Frames, NDArray[np.float64]]]:
+    if args.kitti is not None and Path(args.kitti).exists():
+        camera, frames, truth = kitti_frames(Path(args.kitti))
+        yield "kitti06", camera, frames, truth
+    elif args.kitti is not None:
+        print(f"(no KITTI sample at {args.kitti}: skipped)", file=sys.stderr)
+    for scene in args.scenes:
+        for seed in args.seeds:
+            camera, frames, truth = synthetic_frames(scene, seed, args.frames, args.size, args.cache)
+            yield f"{scene}/{seed}", camera, frames, truth
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--kitti", default=str(DEFAULT_KITTI), help="KITTI odometry sequence with poses ('' skips it)")
+    parser.add_argument(
+        "--scenes", nargs="*", default=["street", "orbit", "highway"], help="synthetic scenes (none: KITTI only)"
+    )
+    parser.add_argument("--seeds", type=parse_seeds, default=parse_seeds("1-5"))
+    parser.add_argument("--frames", type=int, default=30)
+    parser.add_argument("--size", type=parse_size, default=(1226, 370), help="synthetic image size WxH")
+    parser.add_argument("--cache", type=Path, default=None, help="folder for rendered frames (.npz)")
+    parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="a VOParams override")
+    parser.add_argument(
+        "--stereo-bias", nargs="+", metavar="METHOD", help="only measure the stereo features' disparity error "
+        "against ground truth for these sub-pixel methods (lk, parabola, none)"
+    )  # fmt: skip
+    args = parser.parse_args(argv)
+    if args.stereo_bias:
+        print(json.dumps({"stereo_bias": stereo_bias(args.scenes, args.seeds, args.size, args.stereo_bias)}))
+        return 0
+    if args.kitti == "":
+        args.kitti = None
+    params = VOParams(**parse_overrides(args.set))
+    rows = []
+    for name, camera, frames, truth in _sequences(args):
+        row = run_sequence(name, camera, frames, truth, params)
+        rows.append(row)
+        print(
+            f"{name}: {row['translation_pct']:.2f} %, scale {row['scale_pct']:+.2f} %, "
+            f"{row['reliable']}/{row['frames']} reliable, {row['bad_reliable']} bad, "
+            f"{row['ms_per_frame']:.0f} ms/frame",
+            file=sys.stderr,
+            flush=True,
+        )
+    print_table(rows)
+    summary = summarise(rows)
+    for scene, entry in summary.items():
+        t = entry["translation_pct"]
+        print(
+            f"{scene}: translation {t['mean']:.2f} +- {t['std']:.2f} % (worst {t['worst']:.2f}), scale "
+            f"{entry['scale_pct']['mean']:+.2f} % (worst {entry['scale_pct']['worst']:+.2f}), "
+            f"{entry['bad_reliable']} bad reliable frames, {entry['unreliable']} unreliable"
+        )
+    overrides = {k: v for k, v in parse_overrides(args.set).items()}
+    print(json.dumps({"params": dataclasses.asdict(params), "overrides": overrides, "sequences": rows,
+                      "summary": summary}))  # fmt: skip
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
