@@ -67,6 +67,8 @@ STATUSES = (
     "first", "ok", "static", "weak_scale", "few_features", "few_matches", "few_inliers", "implausible", "high_error",
 )  # fmt: skip
 _RELIABLE = frozenset(("first", "ok", "static"))
+# Spread of the two-way refinement's step length over its normal equations' estimate (see _refine_two_way).
+_SHARED = 2.0
 
 
 class OdometryError(SelfContraError):
@@ -114,6 +116,18 @@ class VOParams:
         subpixel: the sub-pixel refinement of stereo matches: ``lk``
             (Lucas-Kanade from the left feature), ``parabola`` (SAD at integer
             disparities and a parabola) or ``none`` (the right ORB corner).
+        prior_gate: before RANSAC, drop matches whose point moved in the world
+            under the constant-velocity prediction by more than its error and
+            the depth noise explain (see ``max_step_change_m``,
+            ``prior_rotation_deg``): vehicles, mostly.
+        track_outlier_px: a track with a residual above this (pixels) in the
+            windowed adjustment is not a static point: it is dropped, the
+            window solved again, and it takes no further part (0: off).
+        prior_rotation_deg: the prediction's rotation error allowed by ``prior_gate``.
+        disparity_threshold_px: largest difference between a match's disparity
+            in the new frame and the one the motion predicts from the
+            reference (grown by the squared ratio of the two disparities);
+            0 switches the gate off.
         depth_weighting: the frame-to-frame refinement weights each residual
             by the depth uncertainty of its triangulated point.
         check_scale: frames whose step length is not trustworthy to
@@ -156,6 +170,10 @@ class VOParams:
     seed: int = 0
     consistent_tracks: bool = True
     subpixel: str = "lk"
+    prior_gate: bool = True
+    track_outlier_px: float = 2.0
+    prior_rotation_deg: float = 1.0
+    disparity_threshold_px: float = 1.0
     depth_weighting: bool = True
     check_scale: bool = True
     max_step_error_pct: float = 2.0
@@ -314,6 +332,7 @@ class StereoOdometry:
         self._velocity: F64 | None = None  # T_ref_cur per frame of the last reliable step
         self._next_track = 0
         self._window: deque[_WindowFrame] = deque(maxlen=max(self.params.window, 1))
+        self._bad_tracks: set[int] = set()  # tracks the windowed adjustment found moving
         #: Left pixel positions (N, 2) of the last frame's inliers (empty when it got no pose): diagnostics.
         self.last_inliers: F64 = np.zeros((0, 2))
         #: Left pixel positions (N, 2) of the last frame's stereo features: diagnostics.
@@ -514,14 +533,61 @@ class StereoOdometry:
         res = np.column_stack([proj - uv, proj_right - u_right])
         return np.nan_to_num(res, nan=1e3)
 
+    def _static_under_prediction(
+        self, ref: _Features, cur: _Features, ri: NDArray[np.int64], ci: NDArray[np.int64], predicted: F64
+    ) -> NDArray[np.bool_]:
+        """Matches whose two triangulations agree in the reference frame under the predicted motion ``T_ref_cur``.
+
+        Allowed: the prediction's error (``max_step_change_m`` plus
+        ``max_step_change_ratio`` of the step, and ``prior_rotation_deg`` of
+        rotation at the point's range) and three standard deviations of both
+        depths (``z^2 / (fx b)`` times 0.3 px of disparity noise).
+        """
+        p = self.params
+        ref_points = ref.points[ri]
+        cur_points = cur.points[ci] @ predicted[:3, :3].T + predicted[:3, 3]
+        distance = np.linalg.norm(ref_points - cur_points, axis=1)
+        fb = self.camera.focal_baseline
+        sigma = 0.3 * np.hypot(ref_points[:, 2] ** 2, cur.points[ci, 2] ** 2) / fb
+        reach = np.linalg.norm(ref_points, axis=1)
+        allowed = (
+            p.max_step_change_m
+            + p.max_step_change_ratio * float(np.linalg.norm(predicted[:3, 3]))
+            + np.deg2rad(p.prior_rotation_deg) * reach
+            + 3.0 * sigma
+        )
+        return distance <= allowed
+
+    def _disparity_consistent(
+        self, t_cur_ref: F64, ref: _Features, cur: _Features, ri: NDArray[np.int64], ci: NDArray[np.int64], cur_uv: F64
+    ) -> NDArray[np.bool_]:
+        """Matches whose disparity in the new frame is what the motion ``T_cur_ref`` predicts from the reference's.
+
+        The reference disparity's error grows by ``(d_cur / d_ref)^2`` on the
+        way, so the threshold ``disparity_threshold_px`` grows with it.
+        """
+        p = self.params
+        if p.disparity_threshold_px <= 0:
+            return np.ones(len(ri), dtype=bool)
+        x = ref.points[ri] @ t_cur_ref[:3, :3].T + t_cur_ref[:3, 3]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            predicted = self.camera.focal_baseline / x[:, 2]
+        observed = cur.disparity[ci]
+        growth = np.maximum(1.0, (observed / ref.disparity[ri]) ** 2)
+        return np.nan_to_num(np.abs(predicted - observed), nan=np.inf) <= p.disparity_threshold_px * growth
+
     def _depth_weights(self, points: F64, pose: F64) -> F64:
         """Per residual (N, 3) weights ``1 / sqrt(1 + (J_z sigma_z / sigma_px)^2)`` of points (N, 3) moved by ``pose``.
 
         A point triangulated from one stereo pair is uncertain along its depth,
         ``sigma_z = z^2 / (fx b) sigma_d``; ``J_z`` is how far its projection
-        (left u, v and right u) moves per metre of depth. With the disparity
-        and the image positions equally noisy (``sigma_d = sigma_px``), far
-        points, whose depth is mostly noise, count for little.
+        (left u, v and right u) in the other frame moves per metre of depth,
+        so the residual's noise is ``sigma_px`` plus the propagated depth
+        noise (the disparity and the image positions taken as equally noisy,
+        ``sigma_d = sigma_px``). The weights fall where the motion is large
+        against the point's range: a point ahead at ``z`` seen after a step
+        ``t`` towards it has a right-image weight ``1 / sqrt(1 + (z / (z - t))^4)``;
+        at the image edges its left weights fall with the step too.
         """
         cam = self.camera
         eps = 1e-4
@@ -581,7 +647,11 @@ class StereoOdometry:
         except np.linalg.LinAlgError:
             return refined, float("inf"), float("inf")
         sigma = 1.4826 * float(np.median(np.abs(fit.fun[fit.fun != 0]))) if np.any(fit.fun != 0) else 0.0
-        std_pct = 100.0 * sigma * float(np.sqrt(max(direction @ covariance[3:, 3:] @ direction, 0.0))) / length
+        # Each measurement enters twice (as an observation one way and in a triangulated point the other):
+        # the normal equations take the two for independent and halve the spread (measured on synthetic points).
+        std_pct = (
+            _SHARED * 100.0 * sigma * float(np.sqrt(max(direction @ covariance[3:, 3:] @ direction, 0.0))) / length
+        )
         change = (residuals_of(fit.x, p.disparity_bias_px) - fit.fun) * robust
         dx = -covariance @ (jac.T @ change)
         bias_pct = 100.0 * abs(float(np.linalg.norm(step + dx[3:6])) - length) / length
@@ -661,6 +731,14 @@ class StereoOdometry:
                         temporal_matches=len(ri))  # fmt: skip
 
         everything = np.arange(len(ri))
+        if self._bad_tracks:
+            fine = everything[~np.isin(ref.track_ids[ri], np.fromiter(self._bad_tracks, np.int64))]
+            everything = fine if len(fine) >= p.min_inliers else everything
+        if velocity is not None and p.prior_gate:
+            # Points that moved in the world since the reference (vehicles) beyond what the prediction's error
+            # and their depth noise explain do not enter RANSAC, unless too few are left.
+            still = everything[self._static_under_prediction(ref, cur, ri[everything], ci[everything], predicted)]
+            everything = still if len(still) >= p.min_inliers else everything
         t_cur_ref, keep = self._pnp_ransac(ref.points[ri], cur_uv, predicted, velocity is not None, everything)
         if velocity is not None and len(keep) >= p.min_inliers and not self._plausible(t_cur_ref, predicted):
             # The largest rigid group moves unlike the camera can (a vehicle filling the view, say): the
@@ -679,6 +757,12 @@ class StereoOdometry:
         if len(keep) < p.min_inliers:
             return fail("few_inliers", f"PnP RANSAC found {len(keep)} inliers of {len(ri)} matches "
                         f"(need {p.min_inliers})", temporal_matches=len(ri), inliers=len(keep))  # fmt: skip
+        # PnP sees only the left image: a vehicle ahead, near the focus of expansion, fits the camera's motion
+        # there; its disparity changes as its own speed says. Gate the stereo (disparity) residual too.
+        keep = keep[self._disparity_consistent(t_cur_ref, ref, cur, ri[keep], ci[keep], cur_uv[keep])]
+        if len(keep) < p.min_inliers:
+            return fail("few_inliers", f"{len(keep)} PnP inliers of {len(ri)} matches agree with their disparity "
+                        f"(need {p.min_inliers})", temporal_matches=len(ri), inliers=len(keep))  # fmt: skip
         t_cur_ref, scale_std, scale_bias = self._refine_two_way(t_cur_ref, ref, cur, ri[keep], ci[keep], cur_uv[keep])
         # Inliers of the refined pose among all matches: both directions within the RANSAC threshold.
         forward = self._stereo_residuals(ref.points[ri], t_cur_ref, cur_uv, cur_uv[:, 0] - cur.disparity[ci])
@@ -687,6 +771,7 @@ class StereoOdometry:
         )
         err = np.maximum(np.abs(forward).max(axis=1), np.abs(backward).max(axis=1))
         inlier = err <= p.ransac_threshold_px * 1.5
+        inlier &= self._disparity_consistent(t_cur_ref, ref, cur, ri, ci, cur_uv)
         n_in = int(inlier.sum())
         self.last_inliers = cur_uv[inlier]
         rms = float(np.sqrt(np.mean(forward[inlier] ** 2))) if n_in else float("nan")
@@ -868,7 +953,10 @@ class StereoOdometry:
             z = np.where(xc[:, 2] > 1e-3, xc[:, 2], 1e-3)
             u = cam.fx * xc[:, 0] / z + cam.cx
             v = cam.fy * xc[:, 1] / z + cam.cy
-            return np.column_stack([u - uv[:, 0], v - uv[:, 1], u - cam.focal_baseline / z - ur]).ravel()
+            res = np.column_stack([u - uv[:, 0], v - uv[:, 1], u - cam.focal_baseline / z - ur])
+            return (res * weight[:, None]).ravel()
+
+        weight = np.ones(fi.size)
 
         n_obs = fi.size
         rows = np.repeat(np.arange(3 * n_obs), 9).reshape(n_obs, 27)
@@ -886,6 +974,18 @@ class StereoOdometry:
             residuals, x0, jac_sparsity=sparsity, loss="huber", f_scale=1.0, method="trf", x_scale="jac",
             max_nfev=15, tr_solver="lsmr",
         )  # fmt: skip
+        if self.params.track_outlier_px > 0:
+            # A track the window cannot explain as one static point (a vehicle far ahead, whose per-frame
+            # motion hides in the noise) is dropped here and kept out of later matching.
+            error = np.abs(fit.fun.reshape(-1, 3)).max(axis=1)
+            bad = np.unique(pi[error > self.params.track_outlier_px])
+            if 0 < bad.size <= shared.size - self.params.min_inliers:
+                self._bad_tracks.update(int(t) for t in shared[bad])
+                weight = (~np.isin(pi, bad)).astype(np.float64)
+                fit = least_squares(
+                    residuals, fit.x, jac_sparsity=sparsity, loss="huber", f_scale=1.0, method="trf",
+                    x_scale="jac", max_nfev=10, tr_solver="lsmr",
+                )  # fmt: skip
         cams = fit.x[: 6 * n_free].reshape(n_free, 6)
         for f, vec in zip(frames[1:], cams, strict=True):
             f.pose = invert_pose(_pose_from_vector(vec))

@@ -1,0 +1,183 @@
+"""The odometry's geometry against numeric ground truth: refinement, its uncertainty, moving points, re-anchoring."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from numpy.typing import NDArray
+
+from selfcontra_ros.datasets.kitti import open_sequence
+from selfcontra_ros.datasets.synthetic import kitti_like_camera, write_sequence
+from selfcontra_ros.geometry import StereoCamera, invert_pose
+from selfcontra_ros.odometry.stereo_vo import FrameQuality, StereoOdometry, VOParams, _Features, _pose_from_vector
+
+CAMERA = kitti_like_camera(640, 192)
+
+
+def _motion(forward: float = 1.5, yaw_deg: float = 0.5) -> NDArray[np.float64]:
+    """T_ref_cur: the camera moves ``forward`` metres along z and turns ``yaw_deg`` about y."""
+    return _pose_from_vector(np.array([0.0, np.deg2rad(yaw_deg), 0.0, 0.05, 0.0, forward]))
+
+
+def _points(rng: np.random.Generator, n: int, near: float, far: float) -> NDArray[np.float64]:
+    """Points (n, 3) in the reference camera that both cameras of both frames see."""
+    z = rng.uniform(near, far, n)
+    u = rng.uniform(60, CAMERA.width - 60, n)
+    v = rng.uniform(30, CAMERA.height - 30, n)
+    return np.column_stack([(u - CAMERA.cx) * z / CAMERA.fx, (v - CAMERA.cy) * z / CAMERA.fy, z])
+
+
+def _features(points: NDArray[np.float64], rng: np.random.Generator, sigma: float) -> _Features:
+    """Measured stereo features of points (N, 3) in a camera: left position and disparity with noise ``sigma`` px."""
+    cam: StereoCamera = CAMERA
+    uv = np.column_stack([cam.fx * points[:, 0] / points[:, 2] + cam.cx, cam.fy * points[:, 1] / points[:, 2] + cam.cy])
+    disparity = cam.focal_baseline / points[:, 2]
+    uv = uv + rng.normal(0.0, sigma, uv.shape)
+    disparity = disparity + rng.normal(0.0, sigma, disparity.shape)
+    z = cam.focal_baseline / disparity
+    measured = np.column_stack([(uv[:, 0] - cam.cx) * z / cam.fx, (uv[:, 1] - cam.cy) * z / cam.fy, z])
+    return _Features(uv, disparity, np.zeros((len(uv), 32), np.uint8), measured)
+
+
+def _pair(
+    rng: np.random.Generator, motion: NDArray[np.float64], sigma: float, n: int = 150, far: float = 60.0
+) -> tuple[_Features, _Features]:
+    ref_points = _points(rng, n, 4.0, far)
+    cur_points = ref_points @ invert_pose(motion)[:3, :3].T + invert_pose(motion)[:3, 3]
+    return _features(ref_points, rng, sigma), _features(cur_points, rng, sigma)
+
+
+def test_refinement_recovers_the_motion_and_its_uncertainty_is_calibrated() -> None:
+    """The step length's spread over noise draws matches the reported standard deviation (within a factor 1.6)."""
+    vo = StereoOdometry(CAMERA)
+    motion = _motion()
+    rng = np.random.default_rng(3)
+    lengths, stds = [], []
+    for _ in range(25):
+        ref, cur = _pair(rng, motion, sigma=0.2)
+        index = np.arange(len(ref.uv))
+        start = invert_pose(motion) @ _pose_from_vector(np.array([0.01, -0.01, 0.0, 0.05, -0.03, 0.1]))
+        t_cur_ref, std_pct, bias_pct = vo._refine_two_way(start, ref, cur, index, index, cur.uv)
+        step = invert_pose(t_cur_ref)
+        lengths.append(np.linalg.norm(step[:3, 3]))
+        stds.append(std_pct)
+        assert np.linalg.norm(step[:3, 3] - motion[:3, 3]) < 0.05
+        assert bias_pct > 0
+    spread_pct = 100.0 * np.std(lengths) / np.linalg.norm(motion[:3, 3])
+    assert abs(np.mean(lengths) / np.linalg.norm(motion[:3, 3]) - 1.0) < 0.01
+    assert np.median(stds) / 1.6 < spread_pct < 1.6 * np.median(stds)
+
+
+@pytest.mark.parametrize("far", [20.0, 120.0])
+def test_bias_sensitivity_predicts_the_effect_of_a_disparity_bias(far: float) -> None:
+    """The reported change of the step for a disparity bias is what re-solving with biased disparities gives."""
+    params = VOParams(disparity_bias_px=0.1)
+    vo = StereoOdometry(CAMERA, params)
+    motion = _motion(forward=2.5)
+    rng = np.random.default_rng(4)
+    ref, cur = _pair(rng, motion, sigma=0.0, far=far)
+    index = np.arange(len(ref.uv))
+    t_cur_ref, _, bias_pct = vo._refine_two_way(invert_pose(motion), ref, cur, index, index, cur.uv)
+    length = np.linalg.norm(invert_pose(t_cur_ref)[:3, 3])
+
+    def biased(f: _Features) -> _Features:
+        d = f.disparity - 0.1
+        z = CAMERA.focal_baseline / d
+        points = np.column_stack(
+            [(f.uv[:, 0] - CAMERA.cx) * z / CAMERA.fx, (f.uv[:, 1] - CAMERA.cy) * z / CAMERA.fy, z]
+        )
+        return _Features(f.uv, d, f.descriptors, points)
+
+    t_biased, _, _ = vo._refine_two_way(invert_pose(motion), biased(ref), biased(cur), index, index, cur.uv)
+    actual_pct = 100.0 * abs(np.linalg.norm(invert_pose(t_biased)[:3, 3]) - length) / length
+    assert bias_pct == pytest.approx(actual_pct, rel=0.25)
+    # Points out to 120 m rest the scale on small disparities: a larger sensitivity than out to 20 m.
+    if far > 100:
+        near_ref, near_cur = _pair(np.random.default_rng(4), motion, sigma=0.0, far=20.0)
+        _, _, near_bias = vo._refine_two_way(invert_pose(motion), near_ref, near_cur, index, index, near_cur.uv)
+        assert bias_pct > 1.5 * near_bias
+
+
+def test_depth_weights_follow_the_propagated_depth_noise() -> None:
+    """On the optical axis, after a step t towards a point at z: left weights 1, right ``1 / sqrt(1 + (z/(z-t))^4)``."""
+    vo = StereoOdometry(CAMERA)
+    z = np.array([5.0, 20.0, 80.0])
+    on_axis = np.column_stack([np.zeros(3), np.zeros(3), z])
+    step = 3.0
+    weights = vo._depth_weights(on_axis, invert_pose(_pose_from_vector(np.array([0, 0, 0, 0, 0, step]))))
+    np.testing.assert_allclose(weights[:, :2], 1.0, atol=1e-6)
+    np.testing.assert_allclose(weights[:, 2], 1.0 / np.sqrt(1.0 + (z / (z - step)) ** 4), rtol=1e-3)
+    # Off the axis the left u weight falls with the step (the point's depth error moves its pixel).
+    off_axis = np.array([[4.0, 0.5, 20.0]])
+    small = vo._depth_weights(off_axis, invert_pose(_motion(forward=0.5)))
+    large = vo._depth_weights(off_axis, invert_pose(_motion(forward=3.0)))
+    assert 0 < large[0, 0] < small[0, 0] <= 1
+
+
+def test_vehicle_points_are_kept_out_of_ransac_and_the_largest_implausible_group_is_skipped() -> None:
+    """A truck beside the camera, moving almost with it, has more matches than the static scene."""
+    vo = StereoOdometry(CAMERA)
+    rng = np.random.default_rng(5)
+    motion = _motion(forward=2.8, yaw_deg=0.0)
+    static_ref, static_cur = _pair(rng, motion, sigma=0.1, n=40)
+    truck_motion = _motion(forward=0.4, yaw_deg=0.0)  # the camera relative to the truck
+    truck_points = np.column_stack([rng.uniform(2.5, 4.0, 70), rng.uniform(-1.5, 0.8, 70), rng.uniform(5.0, 12.0, 70)])
+    truck_cur = truck_points @ invert_pose(truck_motion)[:3, :3].T + invert_pose(truck_motion)[:3, 3]
+    truck_ref_f, truck_cur_f = _features(truck_points, rng, 0.1), _features(truck_cur, rng, 0.1)
+
+    def cat(a: _Features, b: _Features) -> _Features:
+        return _Features(
+            np.vstack([a.uv, b.uv]), np.concatenate([a.disparity, b.disparity]),
+            np.vstack([a.descriptors, b.descriptors]), np.vstack([a.points, b.points]),
+        )  # fmt: skip
+
+    ref, cur = cat(static_ref, truck_ref_f), cat(static_cur, truck_cur_f)
+    index = np.arange(len(ref.uv))
+    is_truck = index >= 40
+    # The prediction (the camera's last step) tells them apart in 3D before any RANSAC.
+    still = vo._static_under_prediction(ref, cur, index, index, motion)
+    assert still[~is_truck].mean() > 0.95 and not still[is_truck].any()
+    # Without it, RANSAC's largest group is the truck, which moves unlike the prediction allows.
+    t_cur_ref, inliers = vo._pnp_ransac(ref.points, cur.uv, motion, True, index)
+    assert is_truck[inliers].mean() > 0.9 and not vo._plausible(t_cur_ref, motion)
+    t_cur_ref, inliers = vo._pnp_ransac(ref.points, cur.uv, motion, True, np.setdiff1d(index, inliers))
+    assert not is_truck[inliers].any() and vo._plausible(t_cur_ref, motion)
+    assert np.linalg.norm(invert_pose(t_cur_ref)[:3, 3] - motion[:3, 3]) < 0.1
+
+
+def test_scale_check_flags_a_step_it_cannot_trust() -> None:
+    vo = StereoOdometry(CAMERA, VOParams(max_step_error_pct=2.0, bias_share=0.5, adjustment_share=0.5))
+    good = FrameQuality(index=3, stamp=0.0, status="ok", reliable=True, features=500, stereo_matches=300,
+                        scale_std_pct=0.3, scale_bias_pct=0.5, adjustment_change_pct=0.2)  # fmt: skip
+    assert vo._check_scale(good) == good
+    for field, value, words in (
+        ("scale_std_pct", 0.7, "3-sigma"),
+        ("scale_bias_pct", 1.2, "disparity bias"),
+        ("adjustment_change_pct", 1.5, "window adjustment"),
+    ):
+        flagged = vo._check_scale(FrameQuality(**{**good.__dict__, field: value}))
+        assert flagged.status == "weak_scale" and not flagged.reliable and words in flagged.message
+    off = StereoOdometry(CAMERA, VOParams(check_scale=False))
+    assert off._check_scale(FrameQuality(**{**good.__dict__, "scale_bias_pct": 9.0})).reliable
+
+
+def test_reanchoring_after_two_failed_frames(tmp_path: Path) -> None:
+    """Frames that jump ahead fail; the second becomes the reference, and the next step is measured from it."""
+    write_sequence(tmp_path, scene="street", frames=10, seed=1, width=640, height=192)
+    seq = open_sequence(tmp_path)
+    truth = seq.poses
+    assert truth is not None
+    vo = StereoOdometry(seq.camera)
+    order = [0, 1, 2, 7, 8, 9]
+    for k in order:
+        vo.add(seq[k].left, seq[k].right)
+    statuses = [q.status for q in vo.qualities]
+    assert statuses[:3] == ["first", "ok", "ok"]
+    assert not vo.qualities[3].reliable and not vo.qualities[4].reliable
+    assert vo.qualities[4].reference == 2
+    assert vo.qualities[5].reliable and vo.qualities[5].reference == 4
+    step = invert_pose(vo.poses[4]) @ vo.poses[5]
+    true_step = invert_pose(truth[8]) @ truth[9]
+    assert np.linalg.norm(step[:3, 3] - true_step[:3, 3]) < 0.03
