@@ -139,10 +139,13 @@ def run_sequence(
     vo = StereoOdometry(camera, params)
     moving_features = moving_inliers = features = inliers = 0
     elapsed = 0.0
+    median_disparity = []
     for left, right, moving in frames:
         started = time.perf_counter()
         result = vo.add(left, right)
         elapsed += time.perf_counter() - started
+        d = vo.last_inlier_disparity
+        median_disparity.append(float(np.median(d)) if len(d) else math.nan)
         if moving is not None and result.quality.reliable and len(vo.last_inliers):
             uv = np.rint(vo.last_inliers).astype(np.int64)
             uv[:, 0] = np.clip(uv[:, 0], 0, camera.width - 1)
@@ -161,6 +164,10 @@ def run_sequence(
     est_length = float(path_lengths(poses)[-1])
     bad = reliable & (steps > BAD_STEP)
     bad[0] = False
+    # Per frame: the frame-to-frame step (before the window adjustment) against the truth, signed.
+    true_steps = np.linalg.norm(np.diff(truth[:, :3, 3], axis=0), axis=1)
+    f2f = np.array([q.translation_m for q in vo.qualities[1:]])
+    measured = np.array([q.inliers > 0 and not math.isnan(q.reprojection_error_px) for q in vo.qualities[1:]])
     return {
         "sequence": name,
         "frames": len(frames),
@@ -175,6 +182,14 @@ def run_sequence(
         "moving_inlier_pct": 100.0 * moving_inliers / inliers if inliers else math.nan,
         "ms_per_frame": 1000.0 * elapsed / len(frames),
         "statuses": sorted({q.status for q in vo.qualities}),
+        "per_frame": {
+            "f2f_scale_error_pct": [float(v) for v in 100.0 * (f2f / np.maximum(true_steps, 1e-9) - 1.0)],
+            "measured": [bool(v) for v in measured],
+            "median_inlier_disparity": median_disparity[1:],
+            "step_error_pct": [float(v) for v in 100.0 * steps[1:]],
+            "reliable": [bool(v) for v in reliable[1:]],
+            "scale_bias_pct": [q.scale_bias_pct for q in vo.qualities[1:]],
+        },
     }
 
 
@@ -269,6 +284,30 @@ def print_table(rows: list[dict[str, Any]]) -> None:
         print(f"| {r['sequence']} | {r['frames']} | {r['path_m']:.1f} | " + " | ".join(cells) + " |")
 
 
+def scale_by_disparity(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Measured frames binned by their inliers' median disparity: mean and mean absolute f2f scale error."""
+    d, e, err, rel = [], [], [], []
+    for r in rows:
+        f = r["per_frame"]
+        for k, ok in enumerate(f["measured"]):
+            if ok and not math.isnan(f["median_inlier_disparity"][k]):
+                d.append(f["median_inlier_disparity"][k])
+                e.append(f["f2f_scale_error_pct"][k])
+                err.append(f["step_error_pct"][k])
+                rel.append(f["reliable"][k])
+    if not d:
+        return []
+    da, ea, erra, rela = np.array(d), np.array(e), np.array(err), np.array(rel)
+    out = []
+    for lo, hi in itertools.pairwise((0.0, 2.0, 3.0, 4.0, 6.0, 10.0, 20.0, 1000.0)):
+        m = (da >= lo) & (da < hi)
+        if m.any():
+            out.append({"disparity": [lo, hi], "frames": int(m.sum()), "mean_pct": float(ea[m].mean()),
+                        "mean_abs_pct": float(np.abs(ea[m]).mean()), "over_2pct": int((erra[m] > 100 * BAD_STEP).sum()),
+                        "reliable": int(rela[m].sum())})  # fmt: skip
+    return out
+
+
 def summarise(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
     """Per scene (the sequence name before '/'): mean, standard deviation and worst of the error figures."""
     groups: dict[str, list[dict[str, Any]]] = {}
@@ -336,6 +375,14 @@ def main(argv: list[str] | None = None) -> int:
             flush=True,
         )
     print_table(rows)
+    binned = scale_by_disparity(rows)
+    print("\nFrame-to-frame scale error by the inliers' median disparity (measured frames):")
+    print("| median disparity px | frames | mean % | mean abs % | step error > 2 % | reliable |")
+    print("|---|---|---|---|---|---|")
+    for b in binned:
+        lo, hi = b["disparity"]
+        print(f"| {lo:g}-{hi:g} | {b['frames']} | {b['mean_pct']:+.2f} | {b['mean_abs_pct']:.2f} | {b['over_2pct']} | "
+              f"{b['reliable']} |")  # fmt: skip
     summary = summarise(rows)
     for scene, entry in summary.items():
         t = entry["translation_pct"]
@@ -346,7 +393,7 @@ def main(argv: list[str] | None = None) -> int:
         )
     overrides = {k: v for k, v in parse_overrides(args.set).items()}
     print(json.dumps({"params": dataclasses.asdict(params), "overrides": overrides, "sequences": rows,
-                      "summary": summary}))  # fmt: skip
+                      "summary": summary, "scale_by_disparity": binned}))  # fmt: skip
     return 0
 
 

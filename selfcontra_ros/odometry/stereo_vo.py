@@ -335,6 +335,8 @@ class StereoOdometry:
         self._bad_tracks: set[int] = set()  # tracks the windowed adjustment found moving
         #: Left pixel positions (N, 2) of the last frame's inliers (empty when it got no pose): diagnostics.
         self.last_inliers: F64 = np.zeros((0, 2))
+        #: Disparities (N,) of the last frame's inliers in the new frame, pixels: diagnostics.
+        self.last_inlier_disparity: F64 = np.zeros(0)
         #: Left pixel positions (N, 2) of the last frame's stereo features: diagnostics.
         self.last_features: F64 = np.zeros((0, 2))
 
@@ -678,6 +680,7 @@ class StereoOdometry:
         p = self.params
         index = len(self.poses)
         self.last_inliers = np.zeros((0, 2))
+        self.last_inlier_disparity = np.zeros(0)
         gl, gr = _grey(left, "left"), _grey(right, "right")
         expected = (self.camera.height, self.camera.width)
         if gl.shape != expected or gr.shape != expected:
@@ -774,6 +777,7 @@ class StereoOdometry:
         inlier &= self._disparity_consistent(t_cur_ref, ref, cur, ri, ci, cur_uv)
         n_in = int(inlier.sum())
         self.last_inliers = cur_uv[inlier]
+        self.last_inlier_disparity = cur.disparity[ci[inlier]]
         rms = float(np.sqrt(np.mean(forward[inlier] ** 2))) if n_in else float("nan")
         t_ref_cur = invert_pose(t_cur_ref)
         extra = {"temporal_matches": len(ri), "inliers": n_in, "reprojection_error_px": rms,
