@@ -122,7 +122,8 @@ class VOParams:
             ``prior_rotation_deg``): vehicles, mostly.
         track_outlier_px: a track with a residual above this (pixels) in the
             windowed adjustment is not a static point: it is dropped, the
-            window solved again, and it takes no further part (0: off).
+            window solved again, and it takes no further part (0: off, the
+            default: on the benchmark it gained nothing and cost a second solve).
         prior_rotation_deg: the prediction's rotation error allowed by ``prior_gate``.
         disparity_threshold_px: largest difference between a match's disparity
             in the new frame and the one the motion predicts from the
@@ -171,7 +172,7 @@ class VOParams:
     consistent_tracks: bool = True
     subpixel: str = "lk"
     prior_gate: bool = True
-    track_outlier_px: float = 2.0
+    track_outlier_px: float = 0.0
     prior_rotation_deg: float = 1.0
     disparity_threshold_px: float = 1.0
     depth_weighting: bool = True
