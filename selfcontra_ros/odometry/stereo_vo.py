@@ -135,12 +135,17 @@ class VOParams:
             ``max_step_error_pct`` are flagged ``weak_scale`` (unreliable,
             but their measured motion is kept and tracked from).
         max_step_error_pct: the step-length error (percent of the step) a
-            reliable frame must stay within: its 3-sigma uncertainty must not
-            exceed it, its sensitivity to a ``disparity_bias_px`` disparity
+            reliable frame must stay within: its ``scale_sigmas``-sigma
+            uncertainty must not exceed it, its sensitivity to a ``disparity_bias_px`` disparity
             bias not ``bias_share`` of it, and the windowed adjustment's change
             of the step not ``adjustment_share`` of it.
         disparity_bias_px: the systematic disparity error the scale check
             guards against (pixels).
+        scale_sigmas: see ``max_step_error_pct``.
+        reference_focal_baseline: ``fx * b`` (pixel metres) that
+            ``max_step_error_pct`` holds for, KITTI's; a camera with a smaller
+            ``fx * b`` measures depth more coarsely, the labeler's tolerances
+            grow with its depth noise, and the limit grows by this over its ``fx * b``.
         bias_share: see ``max_step_error_pct``.
         adjustment_share: see ``max_step_error_pct``.
         reanchor_after: a frame that gets no pose this many frames after the
@@ -179,7 +184,9 @@ class VOParams:
     check_scale: bool = True
     max_step_error_pct: float = 2.0
     disparity_bias_px: float = 0.1
+    scale_sigmas: float = 3.0
     bias_share: float = 0.5
+    reference_focal_baseline: float = 379.8
     adjustment_share: float = 0.5
     reanchor_after: int = 2
     max_step_change_m: float = 0.3
@@ -817,20 +824,21 @@ class StereoOdometry:
     def _check_scale(self, quality: FrameQuality) -> FrameQuality:
         """Flag a measured frame ``weak_scale`` when its step length cannot be trusted to ``max_step_error_pct``.
 
-        Three signs: the step's statistical uncertainty (3 sigma), its
+        Three signs: the step's statistical uncertainty (``scale_sigmas``), its
         sensitivity to a ``disparity_bias_px`` bias of every disparity (a
         scale resting on far points), and how far the windowed adjustment
         moved the step from the frame-to-frame estimate.
         """
         p = self.params
         reasons = []
-        if not 3.0 * quality.scale_std_pct <= p.max_step_error_pct:
-            reasons.append(f"3-sigma step uncertainty {3.0 * quality.scale_std_pct:.2f} %")
-        if not quality.scale_bias_pct <= p.max_step_error_pct * p.bias_share:
+        limit = p.max_step_error_pct * max(1.0, p.reference_focal_baseline / self.camera.focal_baseline)
+        if not p.scale_sigmas * quality.scale_std_pct <= limit:
+            reasons.append(f"{p.scale_sigmas:g}-sigma step uncertainty {p.scale_sigmas * quality.scale_std_pct:.2f} %")
+        if not quality.scale_bias_pct <= limit * p.bias_share:
             reasons.append(
                 f"a {p.disparity_bias_px:g} px disparity bias changes the step by {quality.scale_bias_pct:.2f} %"
             )
-        if not quality.adjustment_change_pct <= p.max_step_error_pct * p.adjustment_share:
+        if not quality.adjustment_change_pct <= limit * p.adjustment_share:
             reasons.append(f"the window adjustment changed the step by {quality.adjustment_change_pct:.2f} %")
         if not reasons or not p.check_scale:
             return quality

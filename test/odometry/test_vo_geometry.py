@@ -148,7 +148,8 @@ def test_vehicle_points_are_kept_out_of_ransac_and_the_largest_implausible_group
 
 
 def test_scale_check_flags_a_step_it_cannot_trust() -> None:
-    vo = StereoOdometry(CAMERA, VOParams(max_step_error_pct=2.0, bias_share=0.5, adjustment_share=0.5))
+    params = VOParams(max_step_error_pct=2.0, scale_sigmas=3.0, bias_share=0.5, adjustment_share=0.5)
+    vo = StereoOdometry(kitti_like_camera(), params)  # KITTI's fx b: the limits as given
     good = FrameQuality(index=3, stamp=0.0, status="ok", reliable=True, features=500, stereo_matches=300,
                         scale_std_pct=0.3, scale_bias_pct=0.5, adjustment_change_pct=0.2)  # fmt: skip
     assert vo._check_scale(good) == good
@@ -159,6 +160,10 @@ def test_scale_check_flags_a_step_it_cannot_trust() -> None:
     ):
         flagged = vo._check_scale(FrameQuality(**{**good.__dict__, field: value}))
         assert flagged.status == "weak_scale" and not flagged.reliable and words in flagged.message
+    # A camera with half KITTI's fx b measures depth half as finely: twice the limits.
+    coarse = StereoOdometry(kitti_like_camera(613, 185), params)
+    assert coarse._check_scale(FrameQuality(**{**good.__dict__, "scale_std_pct": 1.2})).reliable
+    assert not coarse._check_scale(FrameQuality(**{**good.__dict__, "scale_std_pct": 1.4})).reliable
     off = StereoOdometry(CAMERA, VOParams(check_scale=False))
     assert off._check_scale(FrameQuality(**{**good.__dict__, "scale_bias_pct": 9.0})).reliable
 
