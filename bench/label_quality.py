@@ -41,7 +41,7 @@ import numpy as np
 import yaml
 from tqdm import tqdm
 
-from selfcontra_ros.cli import parse_size
+from selfcontra_ros.cli import parse_seeds, parse_size
 from selfcontra_ros.datasets import SCENES
 from selfcontra_ros.datasets.synthetic import write_sequence
 from selfcontra_ros.threads import limit_threads
@@ -59,18 +59,6 @@ FIGURES = (
     ("bad_recall", "bad recall", True),
     ("query_bad_rate", "query bad", False),
 )
-
-
-def parse_seeds(text: str) -> list[int]:
-    """``1-10`` or ``1,3,5`` (or both, e.g. ``1-3,7``) as a sorted list of seeds."""
-    seeds: set[int] = set()
-    for part in text.split(","):
-        first, _, last = part.partition("-")
-        try:
-            seeds.update(range(int(first), int(last or first) + 1))
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected seeds such as 1-10 or 1,3,5, got {text!r}") from None
-    return sorted(seeds)
 
 
 def _parameter_file(params: str | None, overrides: list[str], work: Path) -> Path | None:

@@ -48,7 +48,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from selfcontra_ros.cli import parse_size
+from selfcontra_ros.cli import parse_seeds, parse_size
 from selfcontra_ros.datasets.kitti import open_sequence
 from selfcontra_ros.datasets.synthetic import make_scene
 from selfcontra_ros.geometry import StereoCamera
@@ -60,18 +60,6 @@ DEFAULT_KITTI = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" /
 BAD_STEP = 0.02
 
 Frames = list[tuple[NDArray[np.uint8], NDArray[np.uint8], NDArray[np.bool_] | None]]
-
-
-def parse_seeds(text: str) -> list[int]:
-    """``1-5`` or ``1,3,5`` (or both) as a sorted list of seeds."""
-    seeds: set[int] = set()
-    for part in text.split(","):
-        first, _, last = part.partition("-")
-        try:
-            seeds.update(range(int(first), int(last or first) + 1))
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected seeds such as 1-5 or 1,3,5, got {text!r}") from None
-    return sorted(seeds)
 
 
 def parse_overrides(items: list[str]) -> dict[str, Any]:

@@ -36,6 +36,18 @@ def parse_size(text: str) -> tuple[int, int]:
     return width, height
 
 
+def parse_seeds(text: str) -> list[int]:
+    """Parse ``1-10`` or ``1,3,5`` (or both, e.g. ``1-3,7``) as a sorted list of seeds (an argparse type)."""
+    seeds: set[int] = set()
+    for part in text.split(","):
+        first, _, last = part.partition("-")
+        try:
+            seeds.update(range(int(first), int(last or first) + 1))
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected seeds such as 1-10 or 1,3,5, got {text!r}") from None
+    return sorted(seeds)
+
+
 def parse_frame_range(text: str) -> slice:
     """Parse ``A:B`` (either side optional) as a Python slice of frame indices."""
     parts = text.split(":")
