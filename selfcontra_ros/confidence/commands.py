@@ -333,14 +333,19 @@ def training_matcher(
     return _matcher_params([_label_source(labels, data) for data, labels in pairs], matcher)
 
 
-def merge_input_samples(parts: Sequence[InputSamples], feature_sets: Sequence[str]) -> dict[str, Samples]:
+def merge_input_samples(
+    parts: Sequence[InputSamples], feature_sets: Sequence[str], data: Sequence[str | Path] | None = None
+) -> dict[str, Samples]:
     """The samples of a run: each feature set's samples of the pairs concatenated in the pairs' order.
+
+    ``data`` (the pairs' data, for the error message) defaults to "the inputs".
 
     Raises:
         SelfContraError: no pair had a labelled frame.
     """
     if not any(part.labelled for part in parts):
-        raise SelfContraError("no frame of the inputs has labels to train on")
+        what = "the inputs" if data is None else str([str(d) for d in data])
+        raise SelfContraError(f"no frame of {what} has labels to train on")
     return {name: merge_samples([part.samples[name] for part in parts]) for name in feature_sets}
 
 
@@ -391,9 +396,7 @@ def collect_samples(
         )
         for position, ((data, labels), stereo_input) in enumerate(zip(pairs, bag_inputs, strict=True))
     ]
-    if not any(part.labelled for part in parts):
-        raise SelfContraError(f"no frame of {[str(d) for d, _ in pairs]} has labels to train on")
-    return merge_input_samples(parts, feature_sets), params
+    return merge_input_samples(parts, feature_sets, [d for d, _ in pairs]), params
 
 
 def train_command(

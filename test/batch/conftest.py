@@ -112,8 +112,13 @@ def ray_cluster() -> Iterator[set[int]]:
         _stop_cluster()
 
 
+@pytest.hookimpl(trylast=True)
 def pytest_runtest_teardown(item: pytest.Item, nextitem: pytest.Item | None) -> None:
-    """After the last test of this folder, stop the cluster: the tests after it (ROS timing) run without Ray."""
+    """After the last test of this folder, stop the cluster: the tests after it (ROS timing) run without Ray.
+
+    Last of the teardown hooks, after the test's own fixtures are undone: a test that hid the module
+    (``sys.modules["ray"] = None``) has it back by then, and ``ray.shutdown`` imports parts of it.
+    """
     if _CLUSTER and (nextitem is None or HERE not in Path(nextitem.path).resolve().parents):
         _stop_cluster()
 
