@@ -441,10 +441,7 @@ class StereoOdometry:
         ok &= np.abs(refined[:, 0] - guess[:, 0]) <= 3.0
         ok &= (d >= p.min_disparity) & (d <= p.max_disparity)
         qi, d = qi[ok], d[ok]
-        cam = self.camera
-        z = cam.focal_baseline / d
-        points = np.column_stack([(uv[qi, 0] - cam.cx) * z / cam.fx, (uv[qi, 1] - cam.cy) * z / cam.fy, z])
-        return _Features(uv[qi], d, descriptors[qi], points), int(uv.shape[0])
+        return _Features(uv[qi], d, descriptors[qi], self._triangulate(uv[qi], d)), int(uv.shape[0])
 
     def _refine_right(
         self, left: NDArray[np.uint8], right: NDArray[np.uint8], uv: F64, guess: F64
@@ -942,8 +939,7 @@ class StereoOdometry:
             obs_uv.append(f.uv[sel])
             obs_ur.append(f.u_right[sel])
             d = f.uv[sel, 0] - f.u_right[sel]
-            z = cam.focal_baseline / d
-            local = np.column_stack([(f.uv[sel, 0] - cam.cx) * z / cam.fx, (f.uv[sel, 1] - cam.cy) * z / cam.fy, z])
+            local = self._triangulate(f.uv[sel], d)
             # Initial point: disparity-weighted mean of the triangulations (near views are more precise).
             np.add.at(world_points, idx, (local @ f.pose[:3, :3].T + f.pose[:3, 3]) * d[:, None] ** 2)
             np.add.at(weight, idx, d**2)
