@@ -182,12 +182,10 @@ from __future__ import annotations
 import json
 import math
 import queue
-import signal
 import sys
 import threading
 import time
 from dataclasses import dataclass
-from types import FrameType
 from typing import Any
 
 import numpy as np
@@ -231,6 +229,7 @@ from selfcontra_ros.ros.conversions import (
     stamp_to_nanoseconds,
 )
 from selfcontra_ros.ros.environment import prepare_ros_environment
+from selfcontra_ros.ros.spinning import spin_until_stopped, stop_on_signals
 from selfcontra_ros.session import LabelingSession
 from selfcontra_ros.threads import apply_thread_limit, available_cores, limit_threads
 
@@ -1346,38 +1345,30 @@ class LabelerNode(Node):
 def main(args: list[str] | None = None) -> int:
     """Run the labeler until SIGINT or SIGTERM; return the process exit code (0 stopped, 2 bad parameters)."""
     prepare_ros_environment()
-    # Own signal handling: the context must stay up after Ctrl-C so that the worker can publish while stopping.
+    # Own signal handling (ros/spinning.py): the context must stay up after Ctrl-C so that the worker can
+    # publish while stopping.
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     logger = get_logger(NODE_NAME)
-    stop = threading.Event()
-
-    def request_stop(signum: int, frame: FrameType | None) -> None:
-        stop.set()
-        # A second Ctrl-C interrupts at once, e.g. a long flush_on_shutdown.
-        signal.signal(signal.SIGINT, signal.default_int_handler)
-
-    previous = {sig: signal.signal(sig, request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     node: LabelerNode | None = None
     code = 0
     executor = SingleThreadedExecutor()
-    try:
-        node = LabelerNode()
-        executor.add_node(node)
-        while not stop.is_set() and rclpy.ok():
-            executor.spin_once(timeout_sec=0.1)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except (LabelerConfigError, ParameterException) as exc:
-        logger.error(f"invalid parameters: {exc}")
-        code = 2
-    finally:
-        if node is not None:
-            executor.remove_node(node)
-            node.destroy_node()
-        executor.shutdown()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-        rclpy.try_shutdown()
+    # The handlers stay for the shutdown too: SIGTERM must not cut a flush short, a second Ctrl-C may.
+    with stop_on_signals() as stop:
+        try:
+            node = LabelerNode()
+            executor.add_node(node)
+            spin_until_stopped(executor, stop)
+        except (KeyboardInterrupt, ExternalShutdownException):
+            pass
+        except (LabelerConfigError, ParameterException) as exc:
+            logger.error(f"invalid parameters: {exc}")
+            code = 2
+        finally:
+            if node is not None:
+                executor.remove_node(node)
+                node.destroy_node()
+            executor.shutdown()
+            rclpy.try_shutdown()
     return code
 
 

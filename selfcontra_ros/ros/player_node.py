@@ -98,12 +98,13 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 from rclpy.clock import Clock, ClockType
 from rclpy.duration import Duration
 from rclpy.exceptions import ParameterException, ParameterUninitializedException
-from rclpy.executors import ExternalShutdownException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.logging import get_logger
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.publisher import Publisher  # unparameterised: generic (Publisher[MsgT]) in Kilted, not in Jazzy
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
 from rclpy.task import Future
 
 from selfcontra_ros.bags import topics
@@ -115,6 +116,7 @@ from selfcontra_ros.errors import SelfContraError
 from selfcontra_ros.rectification import raw_from_rectified
 from selfcontra_ros.ros.conversions import stamp_to_nanoseconds
 from selfcontra_ros.ros.environment import prepare_ros_environment
+from selfcontra_ros.ros.spinning import spin_until_stopped, stop_on_signals
 
 __all__ = ["PLAYER_POSE_SOURCES", "BagTFPoses", "PlayerConfigError", "PlayerNode", "PoseMessages", "main"]
 
@@ -668,28 +670,34 @@ class PlayerNode(Node):
 def main(args: list[str] | None = None) -> int:
     """Run the player until the bag is played (or forever with ``loop``); return the process exit code."""
     prepare_ros_environment()
-    rclpy.init(args=args)
+    # Own signal handling (ros/spinning.py): with rclpy's, a Ctrl-C landing in a __del__ left the executor
+    # on a shut-down context and the player exited with an RCLError.
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     logger = get_logger(NODE_NAME)
     node: PlayerNode | None = None
     code = 0
-    try:
-        node = PlayerNode()
-        rclpy.spin_until_future_complete(node, node.finished)
-        if node.finished.done() and not node.wait_for_acknowledgements():
-            # Usual with Fast DDS (acknowledgements follow its 3 s heartbeat): the wait was a short linger.
-            logger.debug("not every message was acknowledged by reliable subscribers before exiting")
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except (PlayerConfigError, ParameterException) as exc:
-        logger.error(f"invalid parameters: {exc}")
-        code = 2
-    except SelfContraError as exc:
-        logger.error(str(exc))
-        code = 1
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    executor = SingleThreadedExecutor()
+    with stop_on_signals() as stop:
+        try:
+            node = PlayerNode()
+            executor.add_node(node)
+            if spin_until_stopped(executor, stop, node.finished.done) and not node.wait_for_acknowledgements():
+                # Usual with Fast DDS (acknowledgements follow its 3 s heartbeat): the wait was a short linger.
+                logger.debug("not every message was acknowledged by reliable subscribers before exiting")
+        except (KeyboardInterrupt, ExternalShutdownException):
+            pass
+        except (PlayerConfigError, ParameterException) as exc:
+            logger.error(f"invalid parameters: {exc}")
+            code = 2
+        except SelfContraError as exc:
+            logger.error(str(exc))
+            code = 1
+        finally:
+            if node is not None:
+                executor.remove_node(node)
+                node.destroy_node()
+            executor.shutdown()
+            rclpy.try_shutdown()
     return code
 
 
