@@ -332,7 +332,6 @@ class StereoOdometry:
             nfeatures=4 * p.features, scaleFactor=1.2, nlevels=4, edgeThreshold=19, patchSize=19,
             fastThreshold=p.fast_threshold,
         )  # fmt: skip
-        self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
         self._lk_criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
         self.poses: list[F64] = []
         self.qualities: list[FrameQuality] = []
@@ -382,23 +381,30 @@ class StereoOdometry:
         return np.array([k.pt for k in keypoints], dtype=np.float64), np.asarray(descriptors, dtype=np.uint8)
 
     def _ratio_matches(
-        self, query: NDArray[np.uint8], train: NDArray[np.uint8], mask: NDArray[np.bool_]
+        self, query: NDArray[np.uint8], train: NDArray[np.uint8], qi: NDArray[np.int64], ti: NDArray[np.int64]
     ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-        """Query/train index pairs passing the mask, the distance bound, the ratio test and uniqueness."""
-        if query.shape[0] == 0 or train.shape[0] == 0 or not mask.any():
+        """Query/train index pairs among the candidate pairs ``(qi, ti)`` passing the distance bound, the ratio
+        test and uniqueness.
+
+        Each query's best and second-best train feature are taken among its
+        candidates only (Hamming distance of the 256-bit ORB descriptors), as
+        a masked brute-force k=2 search would take them; a query with one
+        candidate has no second, and passes the ratio test.
+        """
+        if qi.size == 0:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
-        knn = self._matcher.knnMatch(query, train, k=2, mask=mask.astype(np.uint8))
-        qi, ti, best, second = [], [], [], []
-        for pair in knn:
-            if not pair:
-                continue
-            qi.append(pair[0].queryIdx)
-            ti.append(pair[0].trainIdx)
-            best.append(pair[0].distance)
-            second.append(pair[1].distance if len(pair) > 1 else np.inf)
-        q, t = np.array(qi, np.int64), np.array(ti, np.int64)
-        b, s = np.array(best), np.array(second)
-        ok = (b <= self.params.max_descriptor_distance) & (b < self.params.ratio * s)
+        distance = _hamming(query[qi], train[ti])
+        order = np.lexsort((distance, qi))
+        q, t, b = qi[order], ti[order], distance[order]
+        first = np.ones(q.size, dtype=bool)
+        first[1:] = q[1:] != q[:-1]
+        at = np.flatnonzero(first)
+        has_second = at + 1 < q.size
+        has_second[has_second] = ~first[at[has_second] + 1]
+        second = np.full(at.size, np.inf)
+        second[has_second] = b[at[has_second] + 1]
+        q, t, b = q[at], t[at], b[at].astype(np.float64)
+        ok = (b <= self.params.max_descriptor_distance) & (b < self.params.ratio * second)
         q, t, b = q[ok], t[ok], b[ok]
         # One query per train feature: the closest wins, ties and the rest are dropped.
         order = np.lexsort((b, t))
@@ -429,11 +435,12 @@ class StereoOdometry:
         if uv.shape[0] == 0 or ruv.shape[0] == 0:
             return _Features(np.zeros((0, 2)), np.zeros(0), np.zeros((0, 32), np.uint8), np.zeros((0, 3))), len(uv)
         # Epipolar band: ORB positions of coarser octaves are coarser, so the band widens with the octave.
-        band = 2.0 * 1.2 ** octave[:, None] + p.epipolar_tolerance_px
-        disparity = uv[:, None, 0] - ruv[None, :, 0]
-        mask = (np.abs(uv[:, None, 1] - ruv[None, :, 1]) <= band) & (disparity >= p.min_disparity - 2.0)
-        mask &= disparity <= p.max_disparity
-        qi, ti = self._ratio_matches(descriptors, rdesc, mask)
+        band = 2.0 * 1.2 ** octave.astype(np.float64) + p.epipolar_tolerance_px
+        qi, ti = _row_candidates(uv[:, 1], ruv[:, 1], band)
+        disparity = uv[qi, 0] - ruv[ti, 0]
+        inside = (disparity >= p.min_disparity - 2.0) & (disparity <= p.max_disparity)
+        inside &= np.abs(uv[qi, 1] - ruv[ti, 1]) <= band[qi]
+        qi, ti = self._ratio_matches(descriptors, rdesc, qi[inside], ti[inside])
         guess = np.column_stack([ruv[ti, 0], uv[qi, 1]])
         refined, ok = self._refine_right(left, right, uv[qi], guess)
         d = uv[qi, 0] - refined[:, 0]
@@ -726,8 +733,11 @@ class StereoOdometry:
         # Frame-to-frame matching within a radius of the predicted position.
         pred_uv, _ = self._project(ref.points, invert_pose(predicted))
         radius = p.search_radius_px * gap if velocity is not None else p.first_search_radius_px
-        dist2 = ((pred_uv[:, None, :] - cur.uv[None, :, :]) ** 2).sum(axis=2)
-        ri, ci = self._ratio_matches(ref.descriptors, cur.descriptors, np.nan_to_num(dist2, nan=np.inf) <= radius**2)
+        seen = np.flatnonzero(np.isfinite(pred_uv).all(axis=1))
+        ri, ci = _row_candidates(pred_uv[seen, 1], cur.uv[:, 1], np.full(seen.size, float(radius)))
+        ri = seen[ri]
+        near = ((pred_uv[ri] - cur.uv[ci]) ** 2).sum(axis=1) <= radius**2
+        ri, ci = self._ratio_matches(ref.descriptors, cur.descriptors, ri[near], ci[near])
         # Sub-pixel: follow each reference feature into the new image, started at its matched corner.
         cur_uv, ok = self._lk(ref_image, gl, ref.uv[ri], cur.uv[ci])
         ok &= np.linalg.norm(cur_uv - cur.uv[ci], axis=1) <= 3.0
@@ -949,38 +959,11 @@ class StereoOdometry:
         uv = np.concatenate(obs_uv)
         ur = np.concatenate(obs_ur)
         n_free = len(frames) - 1
-        fixed = invert_pose(frames[0].pose)
         x0 = np.concatenate([np.concatenate([_vector_from_pose(invert_pose(f.pose)) for f in frames[1:]]),
                              world_points.ravel()])  # fmt: skip
-
-        def residuals(x: F64) -> F64:
-            cams = x[: 6 * n_free].reshape(n_free, 6)
-            pts = x[6 * n_free :].reshape(-1, 3)
-            rot = np.concatenate([fixed[None, :3, :3], Rotation.from_rotvec(cams[:, :3]).as_matrix()])
-            trans = np.concatenate([fixed[None, :3, 3], cams[:, 3:]])
-            xc = np.einsum("nij,nj->ni", rot[fi], pts[pi]) + trans[fi]
-            z = np.where(xc[:, 2] > 1e-3, xc[:, 2], 1e-3)
-            u = cam.fx * xc[:, 0] / z + cam.cx
-            v = cam.fy * xc[:, 1] / z + cam.cy
-            res = np.column_stack([u - uv[:, 0], v - uv[:, 1], u - cam.focal_baseline / z - ur])
-            return (res * weight[:, None]).ravel()
-
-        weight = np.ones(fi.size)
-
-        n_obs = fi.size
-        rows = np.repeat(np.arange(3 * n_obs), 9).reshape(n_obs, 27)
-        cols = np.empty((n_obs, 3, 9), dtype=np.int64)
-        free = fi > 0
-        cam_cols = 6 * (fi[:, None] - 1) + np.arange(6)
-        pt_cols = 6 * n_free + 3 * pi[:, None] + np.arange(3)
-        cols[:, :, :6] = np.where(free[:, None], cam_cols, pt_cols[:, :1])[:, None, :]
-        cols[:, :, 6:] = pt_cols[:, None, :]
-        sparsity = scipy.sparse.coo_matrix(
-            (np.ones(rows.size), (rows.ravel(), cols.reshape(n_obs, 27).ravel())), shape=(3 * n_obs, x0.size)
-        ).tocsr()
-        sparsity.data[:] = 1.0
+        problem = _WindowProblem(cam, invert_pose(frames[0].pose), n_free, shared.size, fi, pi, uv, ur)
         fit = least_squares(
-            residuals, x0, jac_sparsity=sparsity, loss="huber", f_scale=1.0, method="trf", x_scale="jac",
+            problem.residuals, x0, jac=problem.jacobian, loss="huber", f_scale=1.0, method="trf", x_scale="jac",
             max_nfev=15, tr_solver="lsmr",
         )  # fmt: skip
         if self.params.track_outlier_px > 0:
@@ -990,9 +973,9 @@ class StereoOdometry:
             bad = np.unique(pi[error > self.params.track_outlier_px])
             if 0 < bad.size <= shared.size - self.params.min_inliers:
                 self._bad_tracks.update(int(t) for t in shared[bad])
-                weight = (~np.isin(pi, bad)).astype(np.float64)
+                problem.weight = (~np.isin(pi, bad)).astype(np.float64)
                 fit = least_squares(
-                    residuals, fit.x, jac_sparsity=sparsity, loss="huber", f_scale=1.0, method="trf",
+                    problem.residuals, fit.x, jac=problem.jacobian, loss="huber", f_scale=1.0, method="trf",
                     x_scale="jac", max_nfev=10, tr_solver="lsmr",
                 )  # fmt: skip
         cams = fit.x[: 6 * n_free].reshape(n_free, 6)
@@ -1000,6 +983,148 @@ class StereoOdometry:
             f.pose = invert_pose(_pose_from_vector(vec))
             self.poses[f.index] = f.pose.copy()
         # Keep the reference frame's 3D points as they are (its own stereo): only poses move.
+
+
+class _WindowProblem:
+    """The windowed adjustment's stereo reprojection residuals and their analytic Jacobian.
+
+    Unknowns ``x``: per free frame (``n_free``, all but the fixed oldest, whose
+    ``T_cam_world`` is ``fixed``) the rotation vector and translation of its
+    ``T_cam_world`` (6 each), then every track's world point (``n_points``,
+    3 each, metres). Observation ``n`` of point ``pi[n]`` in frame ``fi[n]``
+    (0 = the fixed one) gives three residuals, pixels times ``weight[n]``:
+    left u, left v and right u of the projection minus the measured
+    ``uv[n]``, ``u_right[n]``.
+    """
+
+    def __init__(
+        self,
+        camera: StereoCamera,
+        fixed: F64,
+        n_free: int,
+        n_points: int,
+        fi: NDArray[np.int64],
+        pi: NDArray[np.int64],
+        uv: F64,
+        u_right: F64,
+    ) -> None:
+        self.fx, self.fy, self.cx, self.cy = camera.fx, camera.fy, camera.cx, camera.cy
+        self.fb = camera.focal_baseline
+        self.fixed, self.fi, self.pi, self.uv, self.u_right = fixed, fi, pi, uv, u_right
+        self.n_free, self.n_points = n_free, n_points
+        #: Per observation (N,): 1, or 0 for tracks left out.
+        self.weight = np.ones(fi.size)
+        # The Jacobian's structure, fixed: 3 rows per observation, each with the 6 columns of its frame (when
+        # free) and the 3 of its point. ``_order`` puts the (n, 3, 9) blocks' values into CSR order.
+        n = fi.size
+        free = fi > 0
+        cols = np.empty((n, 3, 9), dtype=np.int64)
+        cols[:, :, :6] = (6 * (fi[:, None] - 1) + np.arange(6))[:, None, :]
+        cols[:, :, 6:] = (6 * self.n_free + 3 * pi[:, None] + np.arange(3))[:, None, :]
+        rows = np.broadcast_to(np.arange(3 * n).reshape(n, 3, 1), (n, 3, 9))
+        present = np.concatenate([np.repeat(free[:, None], 6, axis=1), np.ones((n, 3), bool)], axis=1)
+        self._present = np.broadcast_to(present[:, None, :], (n, 3, 9))
+        structure = scipy.sparse.coo_matrix(
+            (np.arange(1, int(self._present.sum()) + 1, dtype=np.float64),
+             (rows[self._present], cols[self._present])),
+            shape=(3 * n, 6 * self.n_free + 3 * self.n_points),
+        ).tocsr()  # fmt: skip
+        self._order = structure.data.astype(np.int64) - 1
+        self._indices, self._indptr, self._shape = structure.indices, structure.indptr, structure.shape
+
+    def _camera_points(self, x: F64) -> tuple[F64, F64, F64, F64]:
+        """The free frames' rotation vectors (F, 3); every frame's rotation (F+1, 3, 3) and translation (F+1, 3);
+        the observed points in their camera (N, 3)."""
+        cams = x[: 6 * self.n_free].reshape(self.n_free, 6)
+        pts = x[6 * self.n_free :].reshape(-1, 3)
+        rot = np.concatenate([self.fixed[None, :3, :3], Rotation.from_rotvec(cams[:, :3]).as_matrix()])
+        trans = np.concatenate([self.fixed[None, :3, 3], cams[:, 3:]])
+        xc = np.einsum("nij,nj->ni", rot[self.fi], pts[self.pi]) + trans[self.fi]
+        return cams[:, :3], rot, trans, xc
+
+    def residuals(self, x: F64) -> F64:
+        """(3 N,) weighted residuals, pixels."""
+        _, _, _, xc = self._camera_points(x)
+        z = np.where(xc[:, 2] > 1e-3, xc[:, 2], 1e-3)
+        u = self.fx * xc[:, 0] / z + self.cx
+        v = self.fy * xc[:, 1] / z + self.cy
+        res = np.column_stack([u - self.uv[:, 0], v - self.uv[:, 1], u - self.fb / z - self.u_right])
+        return (res * self.weight[:, None]).ravel()
+
+    def jacobian(self, x: F64) -> scipy.sparse.csr_matrix:
+        """The residuals' derivatives (3 N, len(x)), sparse.
+
+        With ``X_c = R X + t``: the projection's derivative ``A`` by ``X_c``
+        (zero along depth where the depth is clamped at 1 mm), times ``R`` for
+        the point, the identity for the translation and ``-[R X]_x J_l(r)``
+        for the rotation vector ``r`` (``J_l``: SO(3)'s left Jacobian, since
+        ``R(r + dr) = Exp(J_l(r) dr) R(r)`` to first order).
+        """
+        rotvec, rot, trans, xc = self._camera_points(x)
+        n = self.fi.size
+        ahead = xc[:, 2] > 1e-3
+        z = np.where(ahead, xc[:, 2], 1e-3)
+        inv_z = 1.0 / z
+        dz = np.where(ahead, inv_z * inv_z, 0.0)  # d(1/z)/dz, negated
+        a = np.zeros((n, 3, 3))
+        a[:, 0, 0] = a[:, 2, 0] = self.fx * inv_z
+        a[:, 1, 1] = self.fy * inv_z
+        a[:, 0, 2] = -self.fx * xc[:, 0] * dz
+        a[:, 1, 2] = -self.fy * xc[:, 1] * dz
+        a[:, 2, 2] = a[:, 0, 2] + self.fb * dz
+        a *= self.weight[:, None, None]
+        blocks = np.empty((n, 3, 9))
+        blocks[:, :, 6:] = a @ rot[self.fi]
+        blocks[:, :, 3:6] = a
+        rotated = xc - trans[self.fi]  # R X
+        left = np.concatenate([np.zeros((1, 3, 3)), _left_jacobian(rotvec)])[self.fi]
+        blocks[:, :, :3] = -a @ _skew(rotated) @ left
+        data = blocks[self._present][self._order]
+        return scipy.sparse.csr_matrix((data, self._indices, self._indptr), shape=self._shape)
+
+
+def _skew(v: F64) -> F64:
+    """Cross-product matrices (N, 3, 3) of vectors (N, 3): ``_skew(a) @ b = a x b``."""
+    out = np.zeros((len(v), 3, 3))
+    out[:, 0, 1], out[:, 0, 2], out[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+    out[:, 1, 0], out[:, 2, 0], out[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
+    return out
+
+
+def _left_jacobian(rotvec: F64) -> F64:
+    """SO(3)'s left Jacobians (N, 3, 3) of rotation vectors (N, 3), radians (series below 1e-4 rad)."""
+    theta = np.linalg.norm(rotvec, axis=1)
+    small = theta < 1e-4
+    t = np.where(small, 1.0, theta)
+    a = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(t)) / t**2)
+    b = np.where(small, 1.0 / 6.0 - theta**2 / 120.0, (t - np.sin(t)) / t**3)
+    k = _skew(rotvec)
+    return np.eye(3) + a[:, None, None] * k + b[:, None, None] * (k @ k)
+
+
+def _hamming(a: NDArray[np.uint8], b: NDArray[np.uint8]) -> NDArray[np.int64]:
+    """Hamming distances (N,) between the rows of two (N, 32) uint8 descriptor arrays."""
+    xor = np.bitwise_xor(np.ascontiguousarray(a), np.ascontiguousarray(b)).view(np.uint64)
+    return np.bitwise_count(xor).sum(axis=1, dtype=np.int64)
+
+
+def _row_candidates(query_rows: F64, train_rows: F64, reach: F64) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Every pair ``(q, t)`` with ``|train_rows[t] - query_rows[q]| <= reach[q]``, grouped by ``q``.
+
+    The train rows are sorted once and each query takes the slice within its
+    reach (a binary search each way), so the cost grows with the pairs found,
+    not with queries times train features. The slice is 1e-6 px wider than
+    the reach, against rounding: callers apply their exact test to the pairs.
+    """
+    order = np.argsort(train_rows, kind="stable")
+    rows = train_rows[order]
+    start = np.searchsorted(rows, query_rows - reach - 1e-6, side="left")
+    stop = np.searchsorted(rows, query_rows + reach + 1e-6, side="right")
+    count = np.maximum(stop - start, 0)
+    qi = np.repeat(np.arange(query_rows.size, dtype=np.int64), count)
+    offset = np.arange(qi.size, dtype=np.int64) - np.repeat(np.cumsum(count) - count, count)
+    ti = order[np.repeat(start, count) + offset].astype(np.int64)
+    return qi, ti
 
 
 def _step_of(motion: F64, steps: int) -> F64:

@@ -11,7 +11,16 @@ from numpy.typing import NDArray
 from selfcontra_ros.datasets.kitti import open_sequence
 from selfcontra_ros.datasets.synthetic import kitti_like_camera, write_sequence
 from selfcontra_ros.geometry import StereoCamera, invert_pose
-from selfcontra_ros.odometry.stereo_vo import FrameQuality, StereoOdometry, VOParams, _Features, _pose_from_vector
+from selfcontra_ros.odometry.stereo_vo import (
+    FrameQuality,
+    StereoOdometry,
+    VOParams,
+    _Features,
+    _hamming,
+    _pose_from_vector,
+    _row_candidates,
+    _WindowProblem,
+)
 
 CAMERA = kitti_like_camera(640, 192)
 
@@ -186,3 +195,51 @@ def test_reanchoring_after_two_failed_frames(tmp_path: Path) -> None:
     step = invert_pose(vo.poses[4]) @ vo.poses[5]
     true_step = invert_pose(truth[8]) @ truth[9]
     assert np.linalg.norm(step[:3, 3] - true_step[:3, 3]) < 0.03
+
+
+@pytest.mark.parametrize("angle", [0.3, 1e-6, 0.0])
+def test_window_jacobian_matches_a_numeric_derivative(angle: float) -> None:
+    """The windowed adjustment's analytic Jacobian against central differences (rotations large and near zero)."""
+    rng = np.random.default_rng(3)
+    n_free, n_points = 3, 40
+    fixed = _pose_from_vector(np.array([0.02, -0.01, 0.03, 0.1, -0.2, 0.3]))
+    cams = np.column_stack([rng.normal(0.0, 1.0, (n_free, 3)), rng.normal(0.0, 0.5, (n_free, 3))])
+    cams[:, :3] *= angle / np.maximum(np.linalg.norm(cams[:, :3], axis=1, keepdims=True), 1e-12)
+    points = _points(rng, n_points, 4.0, 40.0)
+    fi = np.repeat(np.arange(n_free + 1), n_points)
+    pi = np.tile(np.arange(n_points), n_free + 1)
+    keep = rng.random(fi.size) < 0.8  # not every point in every frame
+    fi, pi = fi[keep], pi[keep]
+    uv = rng.uniform(0, 600, (fi.size, 2))
+    problem = _WindowProblem(CAMERA, fixed, n_free, n_points, fi, pi, uv, uv[:, 0] - 10.0)
+    problem.weight = np.where(rng.random(fi.size) < 0.1, 0.0, 1.0)
+    x = np.concatenate([cams.ravel(), points.ravel()])
+    analytic = problem.jacobian(x).toarray()
+    step = 1e-6 * np.maximum(1.0, np.abs(x))
+    numeric = np.empty_like(analytic)
+    for k in range(x.size):
+        dx = np.zeros_like(x)
+        dx[k] = step[k]
+        numeric[:, k] = (problem.residuals(x + dx) - problem.residuals(x - dx)) / (2.0 * step[k])
+    scale = np.abs(numeric).max()
+    assert np.abs(analytic - numeric).max() <= 1e-5 * scale
+    # The structure holds only the frame's and the point's columns: nothing of the fixed frame.
+    assert analytic.shape == (3 * fi.size, x.size)
+    assert not analytic[3 * np.flatnonzero(fi == 0)][:, : 6 * n_free].any()
+
+
+def test_row_candidates_and_hamming_agree_with_brute_force() -> None:
+    """The row-bucketed candidate pairs are exactly the brute-force pairs within reach; Hamming counts bits."""
+    rng = np.random.default_rng(5)
+    query = np.round(rng.uniform(0, 50, 300), 1)
+    train = np.round(rng.uniform(0, 50, 400), 1)  # rounded: many pairs exactly at the reach
+    reach = rng.choice([0.0, 1.0, 2.4], 300)
+    qi, ti = _row_candidates(query, train, reach)
+    exact = np.abs(train[ti] - query[qi]) <= reach[qi]
+    found = set(zip(qi[exact].tolist(), ti[exact].tolist(), strict=True))
+    brute = np.argwhere(np.abs(query[:, None] - train[None, :]) <= reach[:, None])
+    assert found == {(int(q), int(t)) for q, t in brute}
+    assert np.all(np.diff(qi) >= 0)
+    a = rng.integers(0, 256, (50, 32), dtype=np.uint8)
+    b = rng.integers(0, 256, (50, 32), dtype=np.uint8)
+    assert np.array_equal(_hamming(a, b), np.unpackbits(a ^ b, axis=1).sum(axis=1))
