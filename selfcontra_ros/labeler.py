@@ -284,6 +284,7 @@ class LabelerParams:
     ambiguity_texture_measure: str = "std"
     ambiguity_abstain: bool = False
     stage2_free_space_band: bool = True
+    stage2_hole_margin_px: float = 0.0
 
     def __post_init__(self) -> None:
         for name in (
@@ -311,6 +312,7 @@ class LabelerParams:
             "keyframe_min_rotation_deg",
             "ambiguity_min_texture",
             "ambiguity_edge_px",
+            "stage2_hole_margin_px",
         ):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
@@ -350,6 +352,7 @@ class LabelerParams:
             "stage2_edge_other_px",
             "ambiguity_min_texture",
             "ambiguity_edge_px",
+            "stage2_hole_margin_px",
         ):
             if getattr(self, name) < 0:
                 raise ValueError(f"LabelerParams.{name} must be >= 0, got {getattr(self, name)}")
@@ -539,6 +542,7 @@ class Labeler:
             negative_sigma=p.stage2_negative_sigma,
             abstain_ambiguous=p.ambiguity_abstain,
             free_space_band=p.stage2_free_space_band,
+            hole_margin_px=p.stage2_hole_margin_px,
         )
         labels = voting.labels.copy()
         unknown = labels == UNKNOWN

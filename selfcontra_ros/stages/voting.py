@@ -60,7 +60,7 @@ from selfcontra_ros.stages import kernels
 from selfcontra_ros.stages._common import tolerance_code
 from selfcontra_ros.window import View, support_count
 
-__all__ = ["NEGATIVE_VOTERS", "VotingResult", "consistency_voting", "fattening_band", "view_band"]
+__all__ = ["NEGATIVE_VOTERS", "VotingResult", "consistency_voting", "fattening_band", "hole_margin", "view_band"]
 
 #: Which reference measurements may cast a negative vote (``negative_voters``):
 #: ``more_accurate`` - only those with ``u_r < u_q``, as for positive votes (paper);
@@ -214,6 +214,24 @@ def fattening_band(
         return valid & (filled - smallest > jump_px)
 
 
+def hole_margin(disparity: NDArray[np.floating], margin_px: float) -> NDArray[np.bool_]:
+    """Valid pixels within ``margin_px`` (Euclidean, pixels) of a *hole* in the disparity map (HxW bool).
+
+    A hole is an invalid pixel (non-finite or <= 0) right of its row's first valid one: a place inside the
+    matched area where the query algorithm found no disparity (a surface nearer than its disparity range, a
+    saturated window, a textureless patch whose best cost sat at disparity 0). Each row's leading invalid run
+    (the left strip a matcher cannot match, or a row with no match at all) is not a hole.
+    """
+    d = np.asarray(disparity, dtype=np.float32)
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(d) & (d > 0)
+    holes = ~valid & (np.cumsum(valid, axis=1) > 0)
+    if margin_px <= 0 or not holes.any():
+        return np.zeros(d.shape, dtype=bool)
+    distance = cv2.distanceTransform((~holes).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    return valid & (distance <= np.float32(margin_px))
+
+
 def view_band(
     view: View, camera: StereoCamera, jump_px: float, occluded_side_px: int, other_px: int
 ) -> NDArray[np.bool_]:
@@ -251,6 +269,7 @@ def consistency_voting(
     negative_sigma: float | None = None,
     abstain_ambiguous: bool = True,
     free_space_band: bool = False,
+    hole_margin_px: float = 0.0,
 ) -> VotingResult:
     """Stage 2 for one query view against the reference views ``refs``.
 
@@ -286,6 +305,8 @@ def consistency_voting(
         free_space_band: with ``edge_jump_px > 0``, a reference point in the reference's own
             :func:`fattening_band` is left out of the free-space z-buffer (it is the reference's foreground
             fattening, floating in front of correct background); false = the paper.
+        hole_margin_px: > 0: no positive label within this many pixels of a hole in the query's disparity
+            (:func:`hole_margin`); 0 = the paper.
     """
     n = query.valid.size
     mode = tolerance_code(tolerance)
@@ -336,6 +357,8 @@ def consistency_voting(
         positive &= support_count(query.support_bits) >= min_query_support
     if edge_jump_px > 0:
         positive &= ~view_band(query, camera, edge_jump_px, edge_occluded_side_px, edge_other_px)
+    if hole_margin_px > 0:
+        positive &= ~hole_margin(query.disparity.reshape(camera.height, camera.width), hole_margin_px).ravel()
     labels[positive] = POSITIVE
     labels[full_voted & (full_sum < 0)] = NEGATIVE
     return VotingResult(vote_sum=full_sum, voted=full_voted, labels=labels)

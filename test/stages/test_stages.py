@@ -15,7 +15,7 @@ from selfcontra_ros.stages.outliers import (
     trivial_outliers,
 )
 from selfcontra_ros.stages.support import support_bits, update_support
-from selfcontra_ros.stages.voting import consistency_voting, fattening_band
+from selfcontra_ros.stages.voting import consistency_voting, fattening_band, hole_margin
 from selfcontra_ros.window import View, make_view, support_count
 
 CAMERA = StereoCamera(fx=200.0, fy=200.0, cx=79.5, cy=59.5, baseline=0.5, width=160, height=120)
@@ -384,3 +384,38 @@ def test_no_positive_label_in_the_fattening_band() -> None:
     assert np.all(off[40:80, 80:96] == POSITIVE)  # the references confirm these points ...
     assert np.all(on[band] == UNKNOWN)  # ... but a pixel in the band is never positive
     np.testing.assert_array_equal(on[~band], off[~band])
+
+
+def test_hole_margin_matches_brute_force_and_skips_each_rows_leading_strip() -> None:
+    rng = np.random.default_rng(5)
+    disp = 10.0 + rng.normal(0.0, 0.5, (30, 50))
+    disp[:, :7] = np.nan  # the matcher's unmatched left strip: not a hole
+    disp[4, :20] = 0.0  # a longer leading run in one row: not a hole either
+    disp[12:15, 25:28] = np.nan  # a hole
+    disp[25, 40] = 0.0  # a one-pixel hole
+    disp[20, 3] = np.nan  # inside the strip
+    valid = np.isfinite(disp) & (disp > 0)
+    holes = [(12 + i, 25 + j) for i in range(3) for j in range(3)] + [(25, 40)]
+    rows, cols = np.mgrid[:30, :50]
+    nearest = np.min([np.hypot(rows - r, cols - c) for r, c in holes], axis=0)
+    for margin in (1.0, 2.5, 6.0):
+        np.testing.assert_array_equal(hole_margin(disp, margin), valid & (nearest <= margin))
+    assert not hole_margin(disp, 0.0).any()
+    strip_only = np.full((30, 50), 10.0)
+    strip_only[:, :7] = np.nan
+    strip_only[4, :20] = np.nan
+    assert not hole_margin(strip_only, 6.0).any()
+
+
+def test_no_positive_label_near_a_hole() -> None:
+    query = view_at(0.0, radius=9.0)
+    refs = [_supported(view_at(20.0, radius=6.0)), _supported(view_at(-20.0, radius=6.0))]
+    shape = (CAMERA.height, CAMERA.width)
+    off = consistency_voting(query, refs, CAMERA, tolerance="sum", **KW).labels.reshape(shape)
+    query.disparity.reshape(shape)[60, 100] = np.nan  # only the hole test sees it: the points stay
+    on = consistency_voting(query, refs, CAMERA, tolerance="sum", hole_margin_px=5.0, **KW).labels.reshape(shape)
+    near = hole_margin(query.disparity.reshape(shape), 5.0)
+    assert near.sum() == 80  # the pixels of a radius-5 disc but the hole itself
+    assert np.all(off[near] == POSITIVE)  # the references confirm these points ...
+    assert np.all(on[near] == UNKNOWN)  # ... but near the hole they abstain
+    np.testing.assert_array_equal(on[~near], off[~near])
