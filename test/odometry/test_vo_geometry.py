@@ -243,3 +243,46 @@ def test_row_candidates_and_hamming_agree_with_brute_force() -> None:
     a = rng.integers(0, 256, (50, 32), dtype=np.uint8)
     b = rng.integers(0, 256, (50, 32), dtype=np.uint8)
     assert np.array_equal(_hamming(a, b), np.unpackbits(a ^ b, axis=1).sum(axis=1))
+
+
+@pytest.mark.parametrize(
+    ("speed_up", "status", "references"),
+    [
+        # Speeding up 0.1 m per frame: two weak frames between reliable ones, each measured from the one before.
+        (0.1, ["first", "ok", "ok", "weak_scale", "weak_scale", "ok"], [-1, 0, 1, 2, 3, 4]),
+        # At constant speed: a weak frame, then a frame without a pose, then one measured across it.
+        (0.0, ["first", "ok", "ok", "weak_scale", "weak_scale", "implausible", "ok"], [-1, 0, 1, 2, 3, 4, 4]),
+    ],
+)
+def test_unreliable_steps_take_the_velocity_of_the_reliable_ones_around_them(
+    speed_up: float, status: list[str], references: list[int]
+) -> None:
+    """A weak frame takes the last reliable step's translation; a reliable frame then interpolates the run."""
+    vo = StereoOdometry(CAMERA)
+    rng = np.random.default_rng(2)
+    truth = [np.eye(4)]
+    for k in range(1, len(status)):
+        step = _pose_from_vector(np.array([0.0, np.deg2rad(0.5), 0.0, 0.02, 0.0, 2.0 + speed_up * k]))
+        truth.append(truth[-1] @ step)
+    for k, (name, reference) in enumerate(zip(status, references, strict=True)):
+        reliable = name in ("first", "ok")
+        if k == 0:
+            pose = np.eye(4)
+        elif name == "implausible":
+            pose = vo.poses[-1] @ _pose_from_vector(np.array([0.0, 0.0, 0.0, 0.3, 0.0, 1.0]))  # a poor guess
+        else:
+            step = invert_pose(truth[reference]) @ truth[k]
+            if not reliable:
+                step[:3, 3] *= 1.0 + rng.uniform(-0.15, 0.15)  # a weak step: its length up to 15 % off
+                step[:3, 3] += rng.normal(0.0, 0.1, 3)
+            pose = vo.poses[reference] @ step
+        quality = FrameQuality(index=k, stamp=0.0, status=name, reliable=reliable, features=500,
+                               stereo_matches=300, reference=reference)  # fmt: skip
+        vo._record(pose, quality)
+        if k and name != "implausible":
+            vo._step_prior(k, reliable)
+        if k == 3:  # the first weak frame: the last reliable step's translation
+            weak = invert_pose(vo.poses[2]) @ vo.poses[3]
+            assert np.allclose(weak[:3, 3], (invert_pose(truth[1]) @ truth[2])[:3, 3])
+    for k in range(len(status)):
+        assert np.allclose(vo.poses[k], truth[k], atol=1e-9), k
