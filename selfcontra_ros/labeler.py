@@ -285,6 +285,7 @@ class LabelerParams:
     ambiguity_abstain: bool = False
     stage2_free_space_band: bool = True
     stage2_hole_margin_px: float = 0.0
+    stage2_free_space_outside_band: bool = True
 
     def __post_init__(self) -> None:
         for name in (
@@ -324,6 +325,7 @@ class LabelerParams:
             "flush_incomplete",
             "ambiguity_abstain",
             "stage2_free_space_band",
+            "stage2_free_space_outside_band",
         ):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise ValueError(f"LabelerParams.{name} must be true or false, got {getattr(self, name)!r}")
@@ -543,6 +545,7 @@ class Labeler:
             abstain_ambiguous=p.ambiguity_abstain,
             free_space_band=p.stage2_free_space_band,
             hole_margin_px=p.stage2_hole_margin_px,
+            free_space_outside_band=p.stage2_free_space_outside_band,
         )
         labels = voting.labels.copy()
         unknown = labels == UNKNOWN

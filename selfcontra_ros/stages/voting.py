@@ -106,6 +106,7 @@ def _reference_votes(
     free_space: bool,
     free_space_neighbourhood: int,
     splat_bits: NDArray[np.uint64] | None = None,
+    free_space_pixels: NDArray[np.bool_] | None = None,
 ) -> None:
     """Add the vote (if any) of one reference view to every valid query pixel, in place (flat ``(H*W,)``).
 
@@ -117,7 +118,8 @@ def _reference_votes(
     (:func:`selfcontra_ros.stages.kernels.free_space_votes_kernel`). ``splat_bits`` (default the reference's
     ``support_bits``) are the support the splat and its votes use: zero leaves a reference point out.
     ``negatives_from_any`` (flat, per query pixel): where any supported reference measurement may vote negative,
-    not only a more accurate one.
+    not only a more accurate one. ``free_space_pixels`` (flat; default all): the query pixels the splat may
+    vote on.
     """
     ref_from_query = ref.from_view(query)
     query_from_ref = query.from_view(ref)
@@ -152,6 +154,8 @@ def _reference_votes(
     )
     if not free_space:
         return
+    if free_space_pixels is not None:
+        pending &= free_space_pixels
     # The splat's voters: the reference's support unless the caller leaves more of its points out.
     bits = ref.support_bits if splat_bits is None else splat_bits
     # The z-buffer only for the pixels the lookup left undecided.
@@ -270,6 +274,7 @@ def consistency_voting(
     abstain_ambiguous: bool = True,
     free_space_band: bool = False,
     hole_margin_px: float = 0.0,
+    free_space_outside_band: bool = True,
 ) -> VotingResult:
     """Stage 2 for one query view against the reference views ``refs``.
 
@@ -307,6 +312,9 @@ def consistency_voting(
             fattening, floating in front of correct background); false = the paper.
         hole_margin_px: > 0: no positive label within this many pixels of a hole in the query's disparity
             (:func:`hole_margin`); 0 = the paper.
+        free_space_outside_band: whether query pixels outside the query's own fattening band (of
+            ``edge_jump_px``) get free-space votes (the paper: yes); false: the splat votes only inside the band.
+            Without ``edge_jump_px`` there is no band and every pixel gets them.
     """
     n = query.valid.size
     mode = tolerance_code(tolerance)
@@ -318,6 +326,9 @@ def consistency_voting(
         from_any = view_band(query, camera, edge_jump_px, edge_occluded_side_px, edge_other_px)
     else:
         from_any = np.zeros(n, dtype=bool)
+    free_space_pixels = None
+    if not free_space_outside_band and edge_jump_px > 0:
+        free_space_pixels = view_band(query, camera, edge_jump_px, edge_occluded_side_px, edge_other_px)
     full_sum = np.zeros(n)
     full_voted = np.zeros(n, dtype=bool)
     # One reference after the other, as the paper sums votes: the sums do not depend on how pixels are split
@@ -348,6 +359,7 @@ def consistency_voting(
             free_space=free_space_votes,
             free_space_neighbourhood=free_space_neighbourhood,
             splat_bits=splat_bits,
+            free_space_pixels=free_space_pixels,
         )
     labels = np.full(n, UNKNOWN, dtype=np.uint8)
     positive = full_voted & (full_sum > 0)
