@@ -24,6 +24,12 @@ this module is the package's own counterpart, built on OpenCV features:
    from frame to frame; a small bundle adjustment over the last
    ``window`` reliable frames (oldest pose fixed) moves poses and track
    points to minimise the stereo reprojection error of every observation.
+6. **Velocity prior.** A frame whose step length cannot be trusted
+   (``weak_scale``) keeps its measured rotation but takes the last reliable
+   step's translation; the next reliable frame interpolates the translations
+   of the unreliable frames before it (a vehicle's velocity changes little
+   from frame to frame), and a reliable-looking step that jumps from the last
+   reliable one by more than a vehicle can accelerate is ``weak_scale``.
 
 Every frame gets a :class:`FrameQuality`: feature, match and inlier counts,
 the RMS reprojection error of the inliers and a status. A frame with too
