@@ -168,6 +168,59 @@ class LabelerParams:
             pixel or more sideways past an object's outline; a wider
             ``stage2_free_space_neighbourhood`` (4, 7) removed them in
             proportion, right and wrong alike (77 % wrong either way).
+        stage2_free_space_min_views: outside the query pixel's own
+            fattening band (``stage2_edge_*``), its free-space votes count
+            only where at least this many reference views cast one (1: the
+            paper); in the band, where the splat finds foreground
+            fattening, one is enough. Measured by source (seeds 1, 4, 6 of
+            ``orbit`` at 613x185): Stage-2 negatives outside the band were
+            29 % of all negatives and 84 % wrong, two thirds of every wrong
+            negative, and 96 % of them had free-space votes alone: single
+            views whose correct points, a pixel off past an object's
+            outline, land in front of the query's surface. A query point
+            truly behind the surface (too far: the wall of
+            ``test_patch_behind_surface_is_negative``) is seen through by
+            many views. Label benchmark, seeds 1-10 at 613x185, with
+            ``stage2_hole_margin_px: 4``, 1 -> 2 -> 3 (default) -> free-space
+            votes only in the band (negative precision, its worst sequence /
+            bad recall / accuracy, %): orbit 73.10, 55.1 / 10.53 / 98.12 ->
+            83.64, 74.0 / 10.34 / 98.23 -> 86.01, 77.4 / 10.28 / 98.25 ->
+            (with an 8 px margin) 86.94, 79.3 / 10.19; street 73.00 / 17.63
+            / 97.89 -> 72.92 / 17.49 / 97.89 -> 72.87 / 17.43 / 97.89;
+            room 96.32 / 39.45 / 97.61 -> 96.48 / 39.39 / 97.64 -> 96.50 /
+            39.36 / 97.64; coverage within 0.1 point.
+        stage2_hole_margin_px: pixels; no Stage-2 positive label on a query
+            pixel this near (Euclidean) to a *hole* in its own disparity map
+            (:func:`~selfcontra_ros.stages.voting.hole_margin`: an invalid
+            pixel right of its row's first valid one), 0 = the paper.
+            Default 4. Deviation: where the query algorithm found no
+            disparity at all inside the matched area (a surface nearer than
+            its range, a textureless patch whose best cost sat at disparity
+            0, an occlusion), its neighbours are the fringe of that failure,
+            filled by SGM's smoothness from the same wrong evidence; nearby
+            views make the same mistake, so the votes confirm them. The
+            pixels stay open to negative votes and Stage 3. Per pixel
+            (tuning seeds at 1226x370: room 5 and 10, street 4 and 5, orbit
+            1 and 4), the wrong positives lie a median 8 px from a hole, the
+            right ones 19 px (room); margin 0 / 4 / 8 px, coverage /
+            positive precision, %: room 33.70 / 95.74 -> 33.14 / 97.07 ->
+            31.98 / 98.19, street 25.70 / 98.78 -> 25.20 / 99.04 -> 23.97 /
+            99.30, orbit 59.59 / 98.98 -> 57.01 / 99.18 -> 51.91 / 99.38.
+            Label benchmark, seeds 1-10 at 613x185, 0 -> 4 -> 8 px
+            (accuracy / coverage / positive precision, worst sequence's
+            positive precision, %): street 97.74 / 33.34 / 99.22, 97.66 ->
+            97.89 / 32.63 / 99.43, 97.96 -> 97.95 / 31.27 / 99.62, 98.57;
+            orbit 98.02 / 68.48 / 98.30, 97.13 -> 98.12 / 66.18 / 98.41,
+            97.27 -> 98.23 / 61.79 / 98.54, 97.40; room 97.49 / 34.53 /
+            98.19, 95.08 -> 97.61 / 33.98 / 98.46, 96.33 -> 97.72 / 32.68 /
+            98.79, 96.85. 8 px would leave ``orbit`` (many occlusion holes
+            beside correct, textured objects) 1.8 points above its 60 %
+            coverage target on the tuning seeds; 4 keeps most of the gain
+            for a third of the cost. Restricting the margin to low texture,
+            to holes of 10 px or more, or leaving out holes a foreground
+            edge explains (occlusions) each kept less precision than it
+            saved coverage. A hole-free map (e.g. a matcher that fills
+            everything) makes it a no-op.
         stage2_positive_sigma: a reference votes positive in Stage 2 only
             within this many standard deviations (default 1.5; the paper:
             ``sigma_max``). Measured on four street frames (seed 1):
@@ -284,8 +337,8 @@ class LabelerParams:
     ambiguity_texture_measure: str = "std"
     ambiguity_abstain: bool = False
     stage2_free_space_band: bool = True
-    stage2_hole_margin_px: float = 0.0
-    stage2_free_space_outside_band: bool = True
+    stage2_hole_margin_px: float = 4.0
+    stage2_free_space_min_views: int = 3
 
     def __post_init__(self) -> None:
         for name in (
@@ -294,6 +347,7 @@ class LabelerParams:
             "min_positive_votes",
             "stage2_min_query_support",
             "stage2_free_space_neighbourhood",
+            "stage2_free_space_min_views",
             "stage2_edge_occluded_side_px",
             "stage2_edge_other_px",
             "ambiguity_texture_window",
@@ -325,7 +379,6 @@ class LabelerParams:
             "flush_incomplete",
             "ambiguity_abstain",
             "stage2_free_space_band",
-            "stage2_free_space_outside_band",
         ):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise ValueError(f"LabelerParams.{name} must be true or false, got {getattr(self, name)!r}")
@@ -370,6 +423,10 @@ class LabelerParams:
         if self.ambiguity_texture_window < 1 or self.ambiguity_texture_window % 2 == 0:
             raise ValueError(
                 f"LabelerParams.ambiguity_texture_window must be odd and >= 1, got {self.ambiguity_texture_window}"
+            )
+        if self.stage2_free_space_min_views < 1:
+            raise ValueError(
+                f"LabelerParams.stage2_free_space_min_views must be >= 1, got {self.stage2_free_space_min_views}"
             )
         if self.min_positive_votes < 1:
             raise ValueError(f"LabelerParams.min_positive_votes must be >= 1, got {self.min_positive_votes}")
@@ -545,7 +602,7 @@ class Labeler:
             abstain_ambiguous=p.ambiguity_abstain,
             free_space_band=p.stage2_free_space_band,
             hole_margin_px=p.stage2_hole_margin_px,
-            free_space_outside_band=p.stage2_free_space_outside_band,
+            free_space_min_views=p.stage2_free_space_min_views,
         )
         labels = voting.labels.copy()
         unknown = labels == UNKNOWN

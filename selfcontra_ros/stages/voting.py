@@ -106,7 +106,8 @@ def _reference_votes(
     free_space: bool,
     free_space_neighbourhood: int,
     splat_bits: NDArray[np.uint64] | None = None,
-    free_space_pixels: NDArray[np.bool_] | None = None,
+    free_space_sum: NDArray[np.float64] | None = None,
+    free_space_voted: NDArray[np.bool_] | None = None,
 ) -> None:
     """Add the vote (if any) of one reference view to every valid query pixel, in place (flat ``(H*W,)``).
 
@@ -118,8 +119,8 @@ def _reference_votes(
     (:func:`selfcontra_ros.stages.kernels.free_space_votes_kernel`). ``splat_bits`` (default the reference's
     ``support_bits``) are the support the splat and its votes use: zero leaves a reference point out.
     ``negatives_from_any`` (flat, per query pixel): where any supported reference measurement may vote negative,
-    not only a more accurate one. ``free_space_pixels`` (flat; default all): the query pixels the splat may
-    vote on.
+    not only a more accurate one. ``free_space_sum`` / ``free_space_voted`` (flat, both or neither): where the
+    free-space votes go instead of ``vote_sum`` / ``voted``.
     """
     ref_from_query = ref.from_view(query)
     query_from_ref = query.from_view(ref)
@@ -154,15 +155,13 @@ def _reference_votes(
     )
     if not free_space:
         return
-    if free_space_pixels is not None:
-        pending &= free_space_pixels
     # The splat's voters: the reference's support unless the caller leaves more of its points out.
     bits = ref.support_bits if splat_bits is None else splat_bits
     # The z-buffer only for the pixels the lookup left undecided.
     source = kernels.splat_supported_kernel(ref.points, ref.valid, bits, query_from_ref, pending, *geometry)
     kernels.free_space_votes_kernel(
-        vote_sum,
-        voted,
+        vote_sum if free_space_sum is None else free_space_sum,
+        voted if free_space_voted is None else free_space_voted,
         pending,
         source,
         query.points,
@@ -274,7 +273,7 @@ def consistency_voting(
     abstain_ambiguous: bool = True,
     free_space_band: bool = False,
     hole_margin_px: float = 0.0,
-    free_space_outside_band: bool = True,
+    free_space_min_views: int = 1,
 ) -> VotingResult:
     """Stage 2 for one query view against the reference views ``refs``.
 
@@ -312,9 +311,9 @@ def consistency_voting(
             fattening, floating in front of correct background); false = the paper.
         hole_margin_px: > 0: no positive label within this many pixels of a hole in the query's disparity
             (:func:`hole_margin`); 0 = the paper.
-        free_space_outside_band: whether query pixels outside the query's own fattening band (of
-            ``edge_jump_px``) get free-space votes (the paper: yes); false: the splat votes only inside the band.
-            Without ``edge_jump_px`` there is no band and every pixel gets them.
+        free_space_min_views: outside the query's own fattening band (of ``edge_jump_px``; without it, everywhere)
+            a pixel's free-space votes count only where at least this many reference views cast one; inside the
+            band one is enough. 1 = the paper.
     """
     n = query.valid.size
     mode = tolerance_code(tolerance)
@@ -326,11 +325,14 @@ def consistency_voting(
         from_any = view_band(query, camera, edge_jump_px, edge_occluded_side_px, edge_other_px)
     else:
         from_any = np.zeros(n, dtype=bool)
-    free_space_pixels = None
-    if not free_space_outside_band and edge_jump_px > 0:
-        free_space_pixels = view_band(query, camera, edge_jump_px, edge_occluded_side_px, edge_other_px)
     full_sum = np.zeros(n)
     full_voted = np.zeros(n, dtype=bool)
+    # Free-space votes apart, with the number of views casting them, when that number matters.
+    counted = free_space_votes and free_space_min_views > 1
+    fs_sum = np.zeros(n) if counted else None
+    fs_views = np.zeros(n, dtype=np.int32) if counted else None
+    ref_fs = np.zeros(n) if counted else None
+    ref_fs_voted = np.zeros(n, dtype=bool) if counted else None
     # One reference after the other, as the paper sums votes: the sums do not depend on how pixels are split
     # between threads.
     for ref in refs:
@@ -359,8 +361,21 @@ def consistency_voting(
             free_space=free_space_votes,
             free_space_neighbourhood=free_space_neighbourhood,
             splat_bits=splat_bits,
-            free_space_pixels=free_space_pixels,
+            free_space_sum=ref_fs,
+            free_space_voted=ref_fs_voted,
         )
+        if ref_fs is not None and ref_fs_voted is not None and fs_sum is not None and fs_views is not None:
+            fs_sum += ref_fs
+            fs_views += ref_fs_voted
+            ref_fs.fill(0.0)
+            ref_fs_voted.fill(False)
+    if fs_sum is not None and fs_views is not None:
+        enough = fs_views >= free_space_min_views
+        if edge_jump_px > 0:
+            enough |= view_band(query, camera, edge_jump_px, edge_occluded_side_px, edge_other_px)
+        keep = enough & (fs_views > 0)
+        full_sum[keep] += fs_sum[keep]
+        full_voted |= keep
     labels = np.full(n, UNKNOWN, dtype=np.uint8)
     positive = full_voted & (full_sum > 0)
     if abstain_ambiguous:

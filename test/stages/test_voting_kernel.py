@@ -134,14 +134,12 @@ def _slow_votes(
     free_space: bool,
     radius: int,
     band_px: float = 0.0,
-    free_space_pixels: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """One reference's vote per query pixel, pixel by pixel, as DESIGN section 3 states the rules.
 
     ``negatives_from_any``: for every query pixel, or per query pixel (flat bool), whether any supported
     reference measurement may vote negative. ``band_px > 0``: the reference's fattening band with that jump
-    (16 px to the left, 3 elsewhere) is kept out of the free-space z-buffer. ``free_space_pixels`` (flat bool):
-    the query pixels that may get a free-space vote (default all). Returns the votes and the pixels
+    (16 px to the left, 3 elsewhere) is kept out of the free-space z-buffer. Returns the votes and the pixels
     whose angle or range comparison was a tie (module docstring).
     """
     from_any = np.broadcast_to(np.asarray(negatives_from_any, dtype=bool), query.valid.shape)
@@ -182,7 +180,7 @@ def _slow_votes(
                     vote = 0.0  # agrees roughly: decided, no vote
                 elif distance > negative_sigma:
                     doubtful[q] = range_q - range_r <= DOUBT * range_r  # just not an occlusion
-        if vote is None and q in nearest and (free_space_pixels is None or free_space_pixels[q]):
+        if vote is None and q in nearest:
             s = nearest[q]
             u_s = float(ref.u[s])
             x_s = ref.points[s].astype(np.float64)
@@ -217,7 +215,8 @@ OPTIONS = [
     pytest.param({"free_space": False}, id="no-free-space"),
     pytest.param({"band_px": 4.0}, id="reference-band"),
     pytest.param({"band_px": 4.0, "voters": "band"}, id="band-voters"),
-    pytest.param({"band_px": 4.0, "voters": "band", "outside_band": False}, id="free-space-in-band-only"),
+    pytest.param({"band_px": 4.0, "voters": "band", "min_views": 2}, id="free-space-min-views"),
+    pytest.param({"min_views": 2}, id="free-space-min-views-no-band"),
     pytest.param({"radius": 0, "positive_sigma": 2.0, "negative_sigma": 2.0}, id="paper"),
 ]
 
@@ -234,12 +233,10 @@ def test_consistency_voting_matches_slow_reference(options: dict) -> None:
         "free_space": True,
         "radius": 2,
         "band_px": 0.0,
-        "outside_band": True,
+        "min_views": 1,
     } | options
     voters = o.pop("voters")
-    outside_band = o.pop("outside_band")
-    # Where the splat may vote: everywhere, or only in the query's own fattening band.
-    free_space_pixels = None if outside_band else _band(query, o["band_px"])
+    min_views = o.pop("min_views")
     # Where any reference may vote negative: everywhere, nowhere, or in the query's own fattening band.
     from_any = {"any": True, "more_accurate": False}.get(voters, False)
     if voters == "band":
@@ -248,11 +245,25 @@ def test_consistency_voting_matches_slow_reference(options: dict) -> None:
     expected_sum = np.zeros(query.valid.size)
     expected_voted = np.zeros(query.valid.size, dtype=bool)
     doubtful = np.zeros(query.valid.size, dtype=bool)
+    free_space_sum = np.zeros(query.valid.size)
+    free_space_views = np.zeros(query.valid.size, dtype=int)
     for ref in refs:  # in window order, as the votes are summed
-        votes, ties = _slow_votes(query, ref, **o, negatives_from_any=from_any, free_space_pixels=free_space_pixels)
-        expected_sum += votes
-        expected_voted |= votes != 0
+        votes, ties = _slow_votes(query, ref, **o, negatives_from_any=from_any)
+        # A pixel's free-space vote is what the splat adds where the lookup left it undecided.
+        lookup, _ = _slow_votes(query, ref, **(o | {"free_space": False}), negatives_from_any=from_any)
+        free_space_sum += votes - lookup
+        free_space_views += votes != lookup
+        expected_sum += lookup
+        expected_voted |= lookup != 0
         doubtful |= ties
+    # Free-space votes count where enough views cast them, or anywhere in the query's own band.
+    enough = free_space_views >= min_views
+    if o["band_px"] > 0:
+        enough |= _band(query, o["band_px"])
+    expected_sum += np.where(enough, free_space_sum, 0.0)
+    expected_voted |= enough & (free_space_views > 0)
+    if min_views > 1:  # the case must drop some free-space votes and keep others
+        assert ((free_space_views > 0) & ~enough).sum() > 5 and (enough & (free_space_views > 0)).sum() > 2
     result = consistency_voting(
         query,
         refs,
@@ -270,7 +281,7 @@ def test_consistency_voting_matches_slow_reference(options: dict) -> None:
         edge_occluded_side_px=16,
         edge_other_px=3,
         free_space_band=o["band_px"] > 0,
-        free_space_outside_band=outside_band,
+        free_space_min_views=min_views,
     )
     assert doubtful.mean() < 0.01, f"{int(doubtful.sum())} pixels decided at a tie"
     clear = ~doubtful
@@ -307,12 +318,6 @@ def test_scene_exercises_every_kind_of_vote() -> None:
     in_band_any = sum(_slow_votes(query, r, **band_any, negatives_from_any=query_band)[0] for r in refs)
     assert ((in_band_any < 0) & (accurate_only >= 0)).sum() > 20
     np.testing.assert_array_equal(in_band_any[~query_band], accurate_only[~query_band])
-    # Free-space votes fall outside the query's band too, and limiting the splat to the band removes only those.
-    band_only = sum(
-        _slow_votes(query, r, **band_any, negatives_from_any=False, free_space_pixels=query_band)[0] for r in refs
-    )
-    assert ((accurate_only < 0) & (band_only == 0) & ~query_band).sum() > 5
-    np.testing.assert_array_equal(band_only[query_band], accurate_only[query_band])
 
 
 @pytest.mark.parametrize("share_needed", [1.0, 0.3])
