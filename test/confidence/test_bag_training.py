@@ -25,13 +25,14 @@ FRAMES, WIDTH, HEIGHT = 8, 320, 96
 SMALL_FOREST = {"n_estimators": 3, "max_depth": 8, "min_samples_leaf": 5}
 MATCHER = MatcherParams(num_disparities=32)
 # A small window so that 8 frames give labelled views; no online retraining (not under test here). The
-# ambiguity cues and the references' free-space band are off: on 8 tiny frames they leave too few views with
-# both classes, and the test is about bag and folder giving the same samples, not about the labels.
+# ambiguity cues, the references' free-space band, the hole margin and the free-space view count are off (the
+# paper's votes): on 8 tiny frames they leave too few views with both classes, and the test is about bag and
+# folder giving the same samples, not about the labels.
 PARAMS = (
     "labeler:\n  ros__parameters:\n"
     "    matcher: {num_disparities: 48}\n"
     "    labeler: {window_size: 6, label_delay: 3, ambiguity_min_texture: 0.0, ambiguity_edge_px: 0.0,"
-    " stage2_free_space_band: false}\n"
+    " stage2_free_space_band: false, stage2_hole_margin_px: 0.0, stage2_free_space_min_views: 1}\n"
     "    confidence: {retrain_every: 1000}\n"
 )
 
