@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from selfcontra_ros.geometry import StereoCamera, invert_pose
+from selfcontra_ros.matching.census import popcount
 from selfcontra_ros.uncertainty import largest_covariance_eigenvalue, mean_camera_centre
 
 __all__ = ["View", "ViewWindow", "make_view", "support_count"]
@@ -158,7 +159,7 @@ def ambiguous_pixels(
 
 def support_count(bits: NDArray[np.uint64]) -> NDArray[np.uint8]:
     """Number of distinct activated angular bins per pixel (the paper's ``support``)."""
-    return np.bitwise_count(bits).astype(np.uint8)
+    return popcount(bits)
 
 
 class ViewWindow:

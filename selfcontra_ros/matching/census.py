@@ -351,13 +351,17 @@ def census_transform(image: NDArray[np.generic], window: tuple[int, int] = CENSU
     return np.asarray(_census_kernel(padded, h_win, w_win))
 
 
-def hamming(a: NDArray[np.uint64], b: NDArray[np.uint64]) -> NDArray[np.uint8]:
-    """Element-wise number of differing bits of two uint64 arrays."""
-    x = np.bitwise_xor(a, b)
+def popcount(x: NDArray[np.uint64]) -> NDArray[np.uint8]:
+    """Element-wise number of set bits of a uint64 array (``np.bitwise_count`` where numpy has it, >= 2.0)."""
     if hasattr(np, "bitwise_count"):
         return np.asarray(np.bitwise_count(x), dtype=np.uint8)
-    as_bytes = x.view(np.uint8).reshape(*x.shape, 8)
+    as_bytes = np.ascontiguousarray(x).view(np.uint8).reshape(*np.shape(x), 8)
     return np.asarray(_POPCOUNT8[as_bytes].sum(axis=-1), dtype=np.uint8)
+
+
+def hamming(a: NDArray[np.uint64], b: NDArray[np.uint64]) -> NDArray[np.uint8]:
+    """Element-wise number of differing bits of two uint64 arrays."""
+    return popcount(np.bitwise_xor(a, b))
 
 
 def census_cost_volume(

@@ -56,6 +56,7 @@ from scipy.spatial.transform import Rotation
 
 from selfcontra_ros.errors import SelfContraError
 from selfcontra_ros.geometry import StereoCamera, invert_pose
+from selfcontra_ros.matching.census import hamming
 
 __all__ = [
     "STATUSES",
@@ -1234,8 +1235,8 @@ def _best_two(group: NDArray[np.int64], value: NDArray[np.int64]) -> tuple[NDArr
 
 def _hamming(a: NDArray[np.uint8], b: NDArray[np.uint8]) -> NDArray[np.int64]:
     """Hamming distances (N,) between the rows of two (N, 32) uint8 descriptor arrays."""
-    xor = np.bitwise_xor(np.ascontiguousarray(a), np.ascontiguousarray(b)).view(np.uint64)
-    return np.bitwise_count(xor).sum(axis=1, dtype=np.int64)
+    words = hamming(np.ascontiguousarray(a).view(np.uint64), np.ascontiguousarray(b).view(np.uint64))
+    return words.sum(axis=1, dtype=np.int64)
 
 
 def _row_candidates(query_rows: F64, train_rows: F64, reach: F64) -> tuple[NDArray[np.int64], NDArray[np.int64]]:

@@ -17,6 +17,7 @@ from selfcontra_ros.matching.census import (
     census_transform,
     census_window_cost_volume,
     hamming,
+    popcount,
     right_cost_volume,
 )
 
@@ -37,6 +38,18 @@ def test_hamming_counts_differing_bits() -> None:
     a = np.array([0, 0b1011, 2**63], dtype=np.uint64)
     b = np.array([0, 0b0110, 0], dtype=np.uint64)
     np.testing.assert_array_equal(hamming(a, b), [0, 3, 1])
+
+
+def test_popcount_without_numpy_bitwise_count(monkeypatch: pytest.MonkeyPatch) -> None:
+    """numpy < 2.0 has no ``bitwise_count`` (``setup.py`` allows numpy >= 1.24): the byte table gives the same."""
+    rng = np.random.default_rng(4)
+    x = rng.integers(0, 2**63, (5, 7), dtype=np.uint64)[:, ::2]  # not contiguous
+    expected = np.unpackbits(np.ascontiguousarray(x).view(np.uint8), axis=1).reshape(5, 4, 64).sum(axis=2)
+    np.testing.assert_array_equal(popcount(x), expected)
+    monkeypatch.delattr(np, "bitwise_count", raising=False)
+    got = popcount(x)
+    assert got.dtype == np.uint8
+    np.testing.assert_array_equal(got, expected)
 
 
 def shifted_pair(disparity: int, shape: tuple[int, int] = (30, 60), seed: int = 1) -> tuple[np.ndarray, np.ndarray]:
