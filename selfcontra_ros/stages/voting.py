@@ -226,8 +226,7 @@ def hole_margin(disparity: NDArray[np.floating], margin_px: float) -> NDArray[np
     (the left strip a matcher cannot match, or a row with no match at all) is not a hole.
     """
     d = np.asarray(disparity, dtype=np.float32)
-    with np.errstate(invalid="ignore"):
-        valid = np.isfinite(d) & (d > 0)
+    valid = np.isfinite(d) & (d > 0)
     holes = ~valid & (np.cumsum(valid, axis=1) > 0)
     if margin_px <= 0 or not holes.any():
         return np.zeros(d.shape, dtype=bool)
@@ -327,12 +326,12 @@ def consistency_voting(
         from_any = np.zeros(n, dtype=bool)
     full_sum = np.zeros(n)
     full_voted = np.zeros(n, dtype=bool)
-    # Free-space votes apart, with the number of views casting them, when that number matters.
+    # Free-space votes apart when the number of views casting them matters: their sum over the references, and
+    # per reference which pixels got one (a reference casts at most one per pixel).
     counted = free_space_votes and free_space_min_views > 1
     fs_sum = np.zeros(n) if counted else None
-    fs_views = np.zeros(n, dtype=np.int32) if counted else None
-    ref_fs = np.zeros(n) if counted else None
-    ref_fs_voted = np.zeros(n, dtype=bool) if counted else None
+    fs_voted = np.zeros(n, dtype=bool) if counted else None
+    fs_views = np.zeros(n, dtype=np.int32)
     # One reference after the other, as the paper sums votes: the sums do not depend on how pixels are split
     # between threads.
     for ref in refs:
@@ -361,15 +360,13 @@ def consistency_voting(
             free_space=free_space_votes,
             free_space_neighbourhood=free_space_neighbourhood,
             splat_bits=splat_bits,
-            free_space_sum=ref_fs,
-            free_space_voted=ref_fs_voted,
+            free_space_sum=fs_sum,
+            free_space_voted=fs_voted,
         )
-        if ref_fs is not None and ref_fs_voted is not None and fs_sum is not None and fs_views is not None:
-            fs_sum += ref_fs
-            fs_views += ref_fs_voted
-            ref_fs.fill(0.0)
-            ref_fs_voted.fill(False)
-    if fs_sum is not None and fs_views is not None:
+        if fs_voted is not None:
+            fs_views += fs_voted
+            fs_voted.fill(False)
+    if fs_sum is not None:
         enough = fs_views >= free_space_min_views
         if edge_jump_px > 0:
             enough |= view_band(query, camera, edge_jump_px, edge_occluded_side_px, edge_other_px)
