@@ -63,7 +63,7 @@ Frames = list[tuple[NDArray[np.uint8], NDArray[np.uint8], NDArray[np.bool_] | No
 
 
 def parse_overrides(items: list[str]) -> dict[str, Any]:
-    """``name=value`` pairs as VOParams keyword arguments, each value converted to the field's type."""
+    """``name=value`` pairs as VOParams keyword arguments, each converted to the field's type (a grid: ``3x8``)."""
     fields = {f.name: f for f in dataclasses.fields(VOParams)}
     defaults = VOParams()
     out: dict[str, Any] = {}
@@ -72,7 +72,12 @@ def parse_overrides(items: list[str]) -> dict[str, Any]:
         if not sep or name not in fields:
             raise SystemExit(f"--set expects NAME=VALUE with NAME one of {', '.join(fields)}, got {item!r}")
         kind = type(getattr(defaults, name))
-        out[name] = (value.lower() in ("1", "true", "yes")) if kind is bool else kind(value)
+        if kind is bool:
+            out[name] = value.lower() in ("1", "true", "yes")
+        elif kind is tuple:  # influence_grid=3x8
+            out[name] = tuple(int(v) for v in value.split("x"))
+        else:
+            out[name] = kind(value)
     return out
 
 
@@ -144,7 +149,7 @@ def run_sequence(
             fuv = np.rint(vo.last_features).astype(np.int64)
             moving_features += int(moving[fuv[:, 1], fuv[:, 0]].sum())
             features += len(fuv)
-    poses = np.stack(vo.poses)
+    poses = vo.smoothed_poses()  # what estimate_poses returns: step lengths smoothed over the sequence
     reliable = np.array([q.reliable for q in vo.qualities])
     metrics = evaluate_odometry(poses, truth)
     steps = step_errors(poses, truth)

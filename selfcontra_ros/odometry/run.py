@@ -80,7 +80,9 @@ def estimate_poses(
 
     Returns:
         (N, 4, 4) poses ``T_world_left`` (metres, after the windowed
-        refinement) and the per-frame quality.
+        refinement, step lengths smoothed over the sequence:
+        :func:`~selfcontra_ros.odometry.stereo_vo.smooth_step_lengths`) and
+        the per-frame quality.
 
     Raises:
         OdometryError: no frame at all, or no usable frame (see :func:`check_usable`).
@@ -90,7 +92,7 @@ def estimate_poses(
         vo.add(left, right, stamp)
     if not vo.poses:
         raise OdometryError("the input holds no stereo frame")
-    poses = np.stack(vo.poses)
+    poses = vo.smoothed_poses()
     check_usable(vo.qualities)
     return poses, vo.qualities
 

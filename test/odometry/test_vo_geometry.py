@@ -19,7 +19,9 @@ from selfcontra_ros.odometry.stereo_vo import (
     _hamming,
     _pose_from_vector,
     _row_candidates,
+    _rts_constant_velocity,
     _WindowProblem,
+    smooth_step_lengths,
 )
 
 CAMERA = kitti_like_camera(640, 192)
@@ -68,7 +70,7 @@ def test_refinement_recovers_the_motion_and_its_uncertainty_is_calibrated() -> N
         ref, cur = _pair(rng, motion, sigma=0.2)
         index = np.arange(len(ref.uv))
         start = invert_pose(motion) @ _pose_from_vector(np.array([0.01, -0.01, 0.0, 0.05, -0.03, 0.1]))
-        t_cur_ref, std_pct, bias_pct = vo._refine_two_way(start, ref, cur, index, index, cur.uv)
+        t_cur_ref, std_pct, bias_pct, _ = vo._refine_two_way(start, ref, cur, index, index, cur.uv)
         step = invert_pose(t_cur_ref)
         lengths.append(np.linalg.norm(step[:3, 3]))
         stds.append(std_pct)
@@ -88,7 +90,7 @@ def test_bias_sensitivity_predicts_the_effect_of_a_disparity_bias(far: float) ->
     rng = np.random.default_rng(4)
     ref, cur = _pair(rng, motion, sigma=0.0, far=far)
     index = np.arange(len(ref.uv))
-    t_cur_ref, _, bias_pct = vo._refine_two_way(invert_pose(motion), ref, cur, index, index, cur.uv)
+    t_cur_ref, _, bias_pct, _ = vo._refine_two_way(invert_pose(motion), ref, cur, index, index, cur.uv)
     length = np.linalg.norm(invert_pose(t_cur_ref)[:3, 3])
 
     def biased(f: _Features) -> _Features:
@@ -99,14 +101,59 @@ def test_bias_sensitivity_predicts_the_effect_of_a_disparity_bias(far: float) ->
         )
         return _Features(f.uv, d, f.descriptors, points)
 
-    t_biased, _, _ = vo._refine_two_way(invert_pose(motion), biased(ref), biased(cur), index, index, cur.uv)
+    t_biased, _, _, _ = vo._refine_two_way(invert_pose(motion), biased(ref), biased(cur), index, index, cur.uv)
     actual_pct = 100.0 * abs(np.linalg.norm(invert_pose(t_biased)[:3, 3]) - length) / length
     assert bias_pct == pytest.approx(actual_pct, rel=0.25)
     # Points out to 120 m rest the scale on small disparities: a larger sensitivity than out to 20 m.
     if far > 100:
         near_ref, near_cur = _pair(np.random.default_rng(4), motion, sigma=0.0, far=20.0)
-        _, _, near_bias = vo._refine_two_way(invert_pose(motion), near_ref, near_cur, index, index, near_cur.uv)
+        _, _, near_bias, _ = vo._refine_two_way(invert_pose(motion), near_ref, near_cur, index, index, near_cur.uv)
         assert bias_pct > 1.5 * near_bias
+
+
+def test_region_influence_is_the_step_change_without_that_region() -> None:
+    """Leaving one image region out: the linearised change of the step matches a re-solve without it.
+
+    A vehicle ahead that moves at 60 % of the camera's speed, all in one
+    region of the influence grid, pulls the two-way refinement's step (it is
+    not rejected here, as no RANSAC runs); its region's influence is large,
+    and without it every region's is small.
+    """
+    params = VOParams(influence_grid=(3, 8))
+    vo = StereoOdometry(CAMERA, params)
+    motion = _motion(forward=2.5)
+    rng = np.random.default_rng(7)
+    ref, cur = _pair(rng, motion, sigma=0.05, n=200)
+    # The vehicle: 25 points 8-10 m ahead, in one grid cell (u 280-320, v 70-110 px of 640x192).
+    z = rng.uniform(8.0, 10.0, 25)
+    u, v = rng.uniform(285, 315, 25), rng.uniform(72, 108, 25)
+    vehicle = np.column_stack([(u - CAMERA.cx) * z / CAMERA.fx, (v - CAMERA.cy) * z / CAMERA.fy, z])
+    own = motion.copy()
+    own[:3, 3] *= 0.6  # the vehicle drove 60 % of the camera's step: seen from the camera it came only 40 % nearer
+    relative = invert_pose(motion) @ own
+    vehicle_cur = vehicle @ relative[:3, :3].T + relative[:3, 3]
+    vr, vc = _features(vehicle, rng, 0.05), _features(vehicle_cur, rng, 0.05)
+
+    def joined(a: _Features, b: _Features) -> _Features:
+        return _Features(np.vstack([a.uv, b.uv]), np.concatenate([a.disparity, b.disparity]),
+                         np.vstack([a.descriptors, b.descriptors]), np.vstack([a.points, b.points]))  # fmt: skip
+
+    both_ref, both_cur = joined(ref, vr), joined(cur, vc)
+    index = np.arange(len(both_ref.uv))
+    fitted, _, _, influence = vo._refine_two_way(invert_pose(motion), both_ref, both_cur, index, index, both_cur.uv)
+    static = np.arange(len(ref.uv))
+    cell = (np.clip((both_cur.uv[:, 1] * 3 / CAMERA.height).astype(int), 0, 2) * 8
+            + np.clip((both_cur.uv[:, 0] * 8 / CAMERA.width).astype(int), 0, 7))  # fmt: skip
+    others = index[cell != cell[-1]]
+    without, _, _, _ = vo._refine_two_way(fitted, both_ref, both_cur, others, others, both_cur.uv[others])
+    length = np.linalg.norm(invert_pose(fitted)[:3, 3])
+    resolved_pct = 100.0 * abs(np.linalg.norm(invert_pose(without)[:3, 3]) - length) / length
+    assert resolved_pct > 1.0  # the vehicle's region did pull the step, against the Huber loss
+    assert influence == pytest.approx(resolved_pct, rel=0.1)
+    _, _, _, clean = vo._refine_two_way(invert_pose(motion), ref, cur, static, static, cur.uv)
+    assert clean < 0.25 * influence
+    off = StereoOdometry(CAMERA, VOParams(influence_grid=(1, 1)))
+    assert off._refine_two_way(invert_pose(motion), ref, cur, static, static, cur.uv)[3] == 0.0
 
 
 def test_depth_weights_follow_the_propagated_depth_noise() -> None:
@@ -157,15 +204,19 @@ def test_vehicle_points_are_kept_out_of_ransac_and_the_largest_implausible_group
 
 
 def test_scale_check_flags_a_step_it_cannot_trust() -> None:
-    params = VOParams(max_step_error_pct=2.0, scale_sigmas=3.0, bias_share=0.5, adjustment_share=0.5)
+    params = VOParams(
+        max_step_error_pct=2.0, scale_sigmas=3.0, bias_share=0.5, adjustment_share=0.5, influence_share=0.5
+    )
     vo = StereoOdometry(kitti_like_camera(), params)  # KITTI's fx b: the limits as given
     good = FrameQuality(index=3, stamp=0.0, status="ok", reliable=True, features=500, stereo_matches=300,
-                        scale_std_pct=0.3, scale_bias_pct=0.5, adjustment_change_pct=0.2)  # fmt: skip
+                        scale_std_pct=0.3, scale_bias_pct=0.5, adjustment_change_pct=0.2,
+                        scale_influence_pct=0.5)  # fmt: skip
     assert vo._check_scale(good) == good
     for field, value, words in (
         ("scale_std_pct", 0.7, "3-sigma"),
         ("scale_bias_pct", 1.2, "disparity bias"),
         ("adjustment_change_pct", 1.5, "window adjustment"),
+        ("scale_influence_pct", 1.5, "one image region"),
     ):
         flagged = vo._check_scale(FrameQuality(**{**good.__dict__, field: value}))
         assert flagged.status == "weak_scale" and not flagged.reliable and words in flagged.message
@@ -286,3 +337,75 @@ def test_unreliable_steps_take_the_velocity_of_the_reliable_ones_around_them(
             assert np.allclose(weak[:3, 3], (invert_pose(truth[1]) @ truth[2])[:3, 3])
     for k in range(len(status)):
         assert np.allclose(vo.poses[k], truth[k], atol=1e-9), k
+
+
+def _straight_run(lengths: NDArray[np.float64], yaw_deg: float = 0.3) -> NDArray[np.float64]:
+    """Poses (N+1, 4, 4) of steps of the given lengths, each along a slightly turning direction."""
+    poses = [np.eye(4)]
+    for k, length in enumerate(lengths):
+        direction = np.array([0.05 * np.sin(k), 0.01, 1.0])
+        translation = length * direction / np.linalg.norm(direction)
+        step = _pose_from_vector(np.concatenate([[0.0, np.deg2rad(yaw_deg), 0.0], translation]))
+        poses.append(poses[-1] @ step)
+    return np.stack(poses)
+
+
+def _qualities(lengths: NDArray[np.float64], std_pct: float, reliable: NDArray[np.bool_]) -> list[FrameQuality]:
+    first = FrameQuality(index=0, stamp=0.0, status="first", reliable=True, features=500, stereo_matches=300)
+    common = {"stamp": 0.0, "features": 500, "stereo_matches": 300, "scale_std_pct": std_pct}
+    steps = [
+        FrameQuality(
+            index=k + 1,
+            status="ok" if ok else "weak_scale",
+            reliable=bool(ok),
+            reference=k,
+            translation_m=float(length),
+            **common,
+        )
+        for k, (length, ok) in enumerate(zip(lengths, reliable, strict=True))
+    ]
+    return [first, *steps]
+
+
+def test_rts_smoother_keeps_a_ramp_and_predicts_the_gaps() -> None:
+    ramp = 2.5 + 0.03 * np.arange(30)
+    measured = np.ones(30, dtype=bool)
+    measured[[0, 7, 8, 9, 29]] = False
+    smoothed = _rts_constant_velocity(ramp, measured, np.full(30, 0.01), 0.02)
+    np.testing.assert_allclose(smoothed, ramp, rtol=1e-3)
+
+
+def test_smoothed_step_lengths_are_nearer_the_truth_and_keep_directions() -> None:
+    """Steps of a speeding-up drive measured with 2 % noise: the smoothed lengths are a third nearer the truth."""
+    rng = np.random.default_rng(11)
+    true_lengths = 2.5 + 0.03 * np.arange(40)
+    measured = true_lengths * (1.0 + rng.normal(0.0, 0.02, 40))
+    reliable = rng.random(40) > 0.3
+    poses = _straight_run(measured)
+    # The normal equations' std is a third of the real noise, as on the synthetic highway.
+    qualities = _qualities(measured, std_pct=2.0 / 3.0, reliable=reliable)
+    smoothed = smooth_step_lengths(poses, qualities, VOParams())
+    steps_before = np.linalg.inv(poses[:-1]) @ poses[1:]
+    steps_after = np.linalg.inv(smoothed[:-1]) @ smoothed[1:]
+    after = np.linalg.norm(steps_after[:, :3, 3], axis=1)
+    before_rms = np.sqrt(np.mean((measured / true_lengths - 1.0) ** 2))
+    after_rms = np.sqrt(np.mean((after / true_lengths - 1.0) ** 2))
+    assert after_rms < 0.75 * before_rms
+    np.testing.assert_allclose(steps_after[:, :3, :3], steps_before[:, :3, :3], atol=1e-12)
+    unit = steps_before[:, :3, 3] / np.linalg.norm(steps_before[:, :3, 3], axis=1)[:, None]
+    np.testing.assert_allclose(steps_after[:, :3, 3] / after[:, None], unit, atol=1e-9)
+    np.testing.assert_allclose(smoothed[0], poses[0])
+    # Off: the poses as given.
+    np.testing.assert_array_equal(smooth_step_lengths(poses, qualities, VOParams(smooth_lengths=False)), poses)
+
+
+def test_static_frames_stay_still_when_smoothed() -> None:
+    lengths = np.array([1.0, 1.0, 0.0, 0.0, 1.0, 1.0])
+    poses = _straight_run(lengths, yaw_deg=0.0)
+    qualities = _qualities(lengths, std_pct=0.3, reliable=np.ones(6, dtype=bool))
+    for k in (3, 4):
+        qualities[k] = FrameQuality(**{**qualities[k].__dict__, "status": "static", "translation_m": 0.0})
+    smoothed = smooth_step_lengths(poses, qualities, VOParams())
+    steps = np.linalg.inv(smoothed[:-1]) @ smoothed[1:]
+    np.testing.assert_allclose(steps[2:4, :3, 3], 0.0, atol=1e-12)
+    assert np.all(np.linalg.norm(steps[[0, 1, 4, 5], :3, 3], axis=1) > 0.5)
