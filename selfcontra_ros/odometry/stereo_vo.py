@@ -150,9 +150,9 @@ class VOParams:
             of disparity change; LK's disparity noise is about 0.15 px at the
             highway's disparities (see ``bench/odometry_accuracy.py
             --stereo-bias``). Highway seeds 1-10 with ``influence_share``
-            0.75: 0.75 +- 0.21 % (worst 1.05) against 0.89 +- 0.43 % (1.85)
-            at 1.0 px; 0.3 px was worse (1.31 +- 0.95 %, worst 3.21, before
-            ``influence_share``).
+            0.75: 0.75 +- 0.21 % (worst 1.05), 7 bad reliable frames,
+            against 0.85 +- 0.41 % (1.67), 11 bad, at 1.0 px; 0.3 px was
+            worse (1.31 +- 0.95 %, worst 3.21, before ``influence_share``).
         depth_weighting: the frame-to-frame refinement weights each residual
             by the depth uncertainty of its triangulated point.
         check_scale: frames whose step length is not trustworthy to
