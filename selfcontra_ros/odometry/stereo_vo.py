@@ -779,11 +779,11 @@ class StereoOdometry:
         outlying residuals are zero and would hide the regions that pull most.
         """
         rows, cols = self.params.influence_grid
-        if rows * cols <= 1:
-            return 0.0
-        n = len(uv)
         cell = (np.clip((uv[:, 1] * rows / self.camera.height).astype(np.int64), 0, rows - 1) * cols
                 + np.clip((uv[:, 0] * cols / self.camera.width).astype(np.int64), 0, cols - 1))  # fmt: skip
+        groups = np.unique(cell)
+        if len(groups) < 2:  # one region (or the check off): leaving it out leaves nothing
+            return 0.0
         per_residual = np.concatenate([np.repeat(cell, 3), np.repeat(cell, 3)])
         eps = 1e-6
         jac = np.empty((len(fun), len(x)))
@@ -797,9 +797,7 @@ class StereoOdometry:
         step = x[3:6]
         length = float(np.linalg.norm(step))
         worst = 0.0
-        for group in np.unique(cell):
-            if np.count_nonzero(cell == group) == n:
-                continue
+        for group in groups:
             rows_g = per_residual == group
             jg = jac[rows_g]
             try:
