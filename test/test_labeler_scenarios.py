@@ -9,12 +9,15 @@ support.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from selfcontra_ros.geometry import StereoCamera, transform_points
 from selfcontra_ros.labeler import Labeler, LabelerParams, LabelResult
 from selfcontra_ros.labels import NEGATIVE, POSITIVE, UNKNOWN
+from selfcontra_ros.stages.voting import contradicted_positives
 
 CAMERA = StereoCamera(fx=200.0, fy=200.0, cx=79.5, cy=59.5, baseline=0.5, width=160, height=120)
 WALL_Z = 10.0
@@ -122,6 +125,28 @@ def test_patch_behind_surface_is_negative(arc: tuple[list[np.ndarray], list[np.n
     assert np.mean(result.stage2_labels[45:65, 65:95] == NEGATIVE) > 0.95
 
 
+def test_a_confirmed_island_in_a_contradicted_region_abstains(arc: tuple[list[np.ndarray], list[np.ndarray]]) -> None:
+    disparities, poses = arc
+    bad = [d.copy() for d in disparities]
+    bad[MIDDLE][40:70, 60:100] *= WALL_Z / 6.5  # a wrong patch in front of the wall ...
+    island = (slice(53, 57), slice(78, 82))
+    bad[MIDDLE][island] = disparities[MIDDLE][island]  # ... with a few right pixels inside it
+    paper = _middle_result(bad, poses, dataclasses.replace(PARAMS, contradicted_share=1.0))
+    result = _middle_result(bad, poses, PARAMS)
+    assert np.all(paper.labels[island] == POSITIVE)  # the views confirm the island ...
+    assert np.all(result.labels[island] == UNKNOWN)  # ... but it sits in a region they contradict
+    # The rule only withholds positives, those of contradicted_positives at fx tan(2.6 deg) = 9 px, where
+    # the trivial outliers (matches outside the right image, the left strip here) count as unlabelled.
+    assert round(CAMERA.fx * np.tan(np.radians(PARAMS.contradicted_radius_deg))) == 9
+    changed = paper.labels != result.labels
+    by_views = np.where(_inside_right_image(bad[MIDDLE]), paper.labels, UNKNOWN)
+    assert np.any((paper.labels == NEGATIVE) & ~_inside_right_image(bad[MIDDLE]))
+    np.testing.assert_array_equal(changed, contradicted_positives(by_views, 9, PARAMS.contradicted_share))
+    assert np.all(result.labels[changed] == UNKNOWN)
+    # Away from the patch the wall keeps its positives.
+    assert np.all(result.labels[:, :40][paper.labels[:, :40] == POSITIVE] == POSITIVE)
+
+
 def test_region_seen_from_one_direction_stays_unknown(arc: tuple[list[np.ndarray], list[np.ndarray]]) -> None:
     disparities, poses = arc
     region = (-1.0, 0.5, -1.0, 0.2)  # x0, x1, y0, y1 on the wall
@@ -169,6 +194,10 @@ def test_views_closer_than_alpha_min_give_no_support() -> None:
         ("stage2_free_space_votes", "yes"),
         ("stage2_free_space_neighbourhood", -1),
         ("stage2_free_space_neighbourhood", 1.5),
+        ("contradicted_share", -0.1),
+        ("contradicted_share", 1.5),
+        ("contradicted_radius_deg", 0.0),
+        ("contradicted_radius_deg", "2"),
     ],
 )
 def test_invalid_stage2_options_are_rejected_by_name(field: str, value: object) -> None:

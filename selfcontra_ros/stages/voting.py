@@ -60,7 +60,15 @@ from selfcontra_ros.stages import kernels
 from selfcontra_ros.stages._common import tolerance_code
 from selfcontra_ros.window import View, support_count
 
-__all__ = ["NEGATIVE_VOTERS", "VotingResult", "consistency_voting", "fattening_band", "hole_margin", "view_band"]
+__all__ = [
+    "NEGATIVE_VOTERS",
+    "VotingResult",
+    "consistency_voting",
+    "contradicted_positives",
+    "fattening_band",
+    "hole_margin",
+    "view_band",
+]
 
 #: Which reference measurements may cast a negative vote (``negative_voters``):
 #: ``more_accurate`` - only those with ``u_r < u_q``, as for positive votes (paper);
@@ -232,6 +240,36 @@ def hole_margin(disparity: NDArray[np.floating], margin_px: float) -> NDArray[np
         return np.zeros(d.shape, dtype=bool)
     distance = cv2.distanceTransform((~holes).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
     return valid & (distance <= np.float32(margin_px))
+
+
+def contradicted_positives(labels: NDArray[np.uint8], radius_px: int, share: float) -> NDArray[np.bool_]:
+    """Positive pixels whose surroundings the views contradicted (HxW bool).
+
+    A positive pixel is returned where more than ``share`` of the labelled pixels (positive or negative, the
+    pixel itself included) in the ``(2 radius_px + 1)^2`` square around it are negative. The query
+    algorithm's errors are spatially coherent (SGM fills a textureless wall or the fringe of a failed match
+    from the same wrong evidence), so a region the multi-view test contradicts is a failing region, and a pixel
+    in it that the views confirmed was most often confirmed by the same mistake repeated. ``share >= 1``
+    returns nothing.
+
+    Raises:
+        ValueError: if ``labels`` is not 2-D or ``radius_px`` is negative.
+    """
+    labels = np.asarray(labels)
+    if labels.ndim != 2:
+        raise ValueError(f"labels must be HxW, got shape {labels.shape}")
+    if radius_px < 0:
+        raise ValueError(f"radius_px must be >= 0, got {radius_px}")
+    positive = labels == POSITIVE
+    if share >= 1 or not positive.any():
+        return np.zeros(labels.shape, dtype=bool)
+    size = (2 * int(radius_px) + 1,) * 2
+    negative = (labels == NEGATIVE).astype(np.float32)
+    labelled = (positive | (labels == NEGATIVE)).astype(np.float32)
+    # Unnormalised box sums are exact integer counts in float32 (windows of far fewer than 2^24 pixels).
+    negatives = cv2.boxFilter(negative, -1, size, normalize=False, borderType=cv2.BORDER_CONSTANT)
+    counted = cv2.boxFilter(labelled, -1, size, normalize=False, borderType=cv2.BORDER_CONSTANT)
+    return positive & (negatives > np.float32(share) * counted)
 
 
 def view_band(

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from selfcontra_ros.geometry import StereoCamera
 from selfcontra_ros.labels import NEGATIVE, POSITIVE, UNKNOWN
@@ -15,7 +16,7 @@ from selfcontra_ros.stages.outliers import (
     trivial_outliers,
 )
 from selfcontra_ros.stages.support import support_bits, update_support
-from selfcontra_ros.stages.voting import consistency_voting, fattening_band, hole_margin
+from selfcontra_ros.stages.voting import consistency_voting, contradicted_positives, fattening_band, hole_margin
 from selfcontra_ros.window import View, make_view, support_count
 
 CAMERA = StereoCamera(fx=200.0, fy=200.0, cx=79.5, cy=59.5, baseline=0.5, width=160, height=120)
@@ -405,6 +406,27 @@ def test_hole_margin_matches_brute_force_and_skips_each_rows_leading_strip() -> 
     strip_only[:, :7] = np.nan
     strip_only[4, :20] = np.nan
     assert not hole_margin(strip_only, 6.0).any()
+
+
+def test_contradicted_positives_match_brute_force() -> None:
+    rng = np.random.default_rng(11)
+    labels = rng.choice(np.array([UNKNOWN, POSITIVE, NEGATIVE], dtype=np.uint8), size=(23, 37), p=[0.3, 0.5, 0.2])
+    labels[5:12, 20:30] = NEGATIVE  # a contradicted region with positives beside it
+    # Shares that no window's negatives / labelled count can equal (denominators up to 81), so no tie decides.
+    for radius, share in ((1, 0.1037), (3, 0.2513), (4, 0.6011)):
+        out = contradicted_positives(labels, radius, share)
+        expected = np.zeros(labels.shape, dtype=bool)
+        for r in range(labels.shape[0]):
+            for c in range(labels.shape[1]):
+                win = labels[max(r - radius, 0) : r + radius + 1, max(c - radius, 0) : c + radius + 1]
+                labelled = np.count_nonzero(win != UNKNOWN)
+                expected[r, c] = labels[r, c] == POSITIVE and np.count_nonzero(win == NEGATIVE) > share * labelled
+        np.testing.assert_array_equal(out, expected)
+        assert out.any() and not out.all()
+    assert not contradicted_positives(labels, 3, 1.0).any()  # share 1: the paper, nothing dropped
+    assert not contradicted_positives(labels, 0, 0.0).any()  # radius 0: a positive's only pixel is itself
+    with pytest.raises(ValueError, match="radius_px"):
+        contradicted_positives(labels, -1, 0.5)
 
 
 def test_no_positive_label_near_a_hole() -> None:
