@@ -48,6 +48,7 @@ labeler:
       window_size: 6
       label_delay: {DELAY}
       stage2_edge_jump_px: 0.0  # no fattening band: at 320x96 it leaves view 0 without positives (no sample)
+      contradicted_share: 1.0  # nor contradicted-region rule: at 320x96 it leaves too few positives to train on
     confidence:
       confidence_threshold: {THRESHOLD}
       retrain_every: 3
