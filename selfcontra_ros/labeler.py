@@ -240,10 +240,10 @@ class LabelerParams:
             street 35 / 2.1, 99.68, 99.04, 31.93; orbit 3.5 / 0.7, 98.46,
             97.33, 65.60; 0.2: room 41 / 4.1, 99.00, 97.51, 33.10; street
             22 / 0.9, 99.60, 98.78, 32.33 (without: room 98.44, 96.28, 33.94;
-            street 99.43, 97.96, 32.62; orbit 98.40, 97.27, 66.11). A half-width of 8 px
-            withdrew fewer wrong positives for the same coverage
-            (room at 0.05: 48 / 5.8), 32 px right positives beside any
-            negative region (room at 0.1: 76 / 20). Label benchmark,
+            street 99.43, 97.96, 32.62; orbit 98.40, 97.27, 66.11). A
+            half-width of 8 px withdrew fewer wrong positives for the same
+            coverage (room at 0.05: 48 / 5.8), 32 px right positives beside
+            any negative region (room at 0.1: 76 / 20). Label benchmark,
             held-out seeds 11-13 at 1226x370, 1 -> 0.1 (accuracy /
             coverage / positive precision, its worst sequence, %): street
             96.49 / 30.23 / 98.89, 98.60 -> 96.78 / 28.88 / 99.42, 99.39;

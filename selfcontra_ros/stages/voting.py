@@ -264,10 +264,10 @@ def contradicted_positives(labels: NDArray[np.uint8], radius_px: int, share: flo
     if share >= 1 or not positive.any():
         return np.zeros(labels.shape, dtype=bool)
     size = (2 * int(radius_px) + 1,) * 2
-    negative = (labels == NEGATIVE).astype(np.float32)
-    labelled = (positive | (labels == NEGATIVE)).astype(np.float32)
+    negative = labels == NEGATIVE
     # Unnormalised box sums are exact integer counts in float32 (windows of far fewer than 2^24 pixels).
-    negatives = cv2.boxFilter(negative, -1, size, normalize=False, borderType=cv2.BORDER_CONSTANT)
+    negatives = cv2.boxFilter(negative.astype(np.float32), -1, size, normalize=False, borderType=cv2.BORDER_CONSTANT)
+    labelled = (positive | negative).astype(np.float32)
     counted = cv2.boxFilter(labelled, -1, size, normalize=False, borderType=cv2.BORDER_CONSTANT)
     return positive & (negatives > np.float32(share) * counted)
 
