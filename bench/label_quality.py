@@ -12,6 +12,11 @@ Renders ``--scenes`` x ``--seeds`` sequences (``--frames`` frames at
   on the self-generated labels of the first half of the seeds and on their
   ground truth, both evaluated on the second half (AUSC / optimal), and the
   ratio self / ground truth (the paper's Table 1 comparison);
+* with ``--oracles`` too: forests trained on the self labels mended with the
+  ground truth (:data:`ORACLES`: the labelled pixels' true labels; only the
+  positives mended; only the negatives; the wrong positives or all wrong
+  labels left out), which tell whether the choice of pixels or the wrong
+  positives or negatives cost the forest;
 * a PNG (``--plot``) of positive precision and accuracy against the query
   bad rate, one point per sequence;
 * last, one JSON line with all of it.
@@ -105,8 +110,54 @@ def _pct(value: float) -> str:
     return "   -  " if not math.isfinite(value) else f"{100 * value:6.2f}"
 
 
-def _confidence(scene: str, rows: list[dict[str, Any]], work: Path) -> dict[str, float]:
-    """Ensemble forests trained on self labels / ground truth of the first half of the seeds, scored on the rest."""
+#: ``--oracles``: training labels that mend one part of the self labels with the ground truth, to tell what in
+#: them costs the forest. Each maps (self label image, ground-truth label image) to the training labels.
+ORACLES = {
+    # The labelled pixels, each with its true label: what the choice of pixels costs, without label errors.
+    "gt_at_labels": lambda own, gt: np.where(own != 0, gt, 0),
+    # Only the positives mended (a wrong one becomes negative): what the wrong positives cost.
+    "gt_positives": lambda own, gt: np.where(own == 1, gt, own),
+    # Only the negatives mended (a wrong one becomes positive): what the wrong negatives cost.
+    "gt_negatives": lambda own, gt: np.where(own == 2, gt, own),
+    # The wrong positives left out (unknown): their cost without adding negatives, which the balanced
+    # draw (as many positives as negatives per image) would turn into more samples of both classes.
+    "no_wrong_positives": lambda own, gt: np.where((own == 1) & (gt == 2), 0, own),
+    # Every wrong label left out.
+    "no_wrong_labels": lambda own, gt: np.where((own != 0) & (gt != 0) & (gt != own), 0, own),
+}
+
+
+def _oracle_folders(row: dict[str, Any], work: Path) -> dict[str, Path]:
+    """One label folder per :data:`ORACLES` entry for a labelled sequence, the query disparity matched again."""
+    import cv2
+
+    from selfcontra_ros.confidence.commands import iter_frames
+    from selfcontra_ros.evaluation.metrics import ground_truth_labels
+    from selfcontra_ros.matching.base import MatcherParams, make_matcher
+
+    own_root = Path(row["labels"])
+    metrics = json.loads((own_root / "metrics.json").read_text())
+    matcher = make_matcher(MatcherParams(**metrics["params"]["matcher"]))
+    folders = {name: work / "oracles" / name / own_root.name for name in ORACLES}
+    for folder in folders.values():
+        (folder / "labels").mkdir(parents=True, exist_ok=True)
+        shutil.copy(own_root / "metrics.json", folder / "metrics.json")  # the query algorithm travels with them
+    for frame in iter_frames(row["data"]):
+        name = f"{frame.index:06d}.png"
+        if not (own_root / "labels" / name).is_file() or frame.gt_disparity is None:
+            continue  # a frame the labeler did not label (the last label_delay of a sequence)
+        own = cv2.imread(str(own_root / "labels" / name), cv2.IMREAD_UNCHANGED)
+        gt = ground_truth_labels(matcher.compute(frame.left, frame.right, with_right=False).left, frame.gt_disparity)
+        for oracle, mend in ORACLES.items():
+            cv2.imwrite(str(folders[oracle] / "labels" / name), mend(own, gt).astype(np.uint8))
+    return folders
+
+
+def _confidence(scene: str, rows: list[dict[str, Any]], work: Path, *, oracles: bool = False) -> dict[str, float]:
+    """Ensemble forests trained on self labels / ground truth of the first half of the seeds, scored on the rest.
+
+    With ``oracles`` also on each :data:`ORACLES` mending of the self labels.
+    """
     from selfcontra_ros.confidence.commands import evaluate_command, train_command
 
     ordered = sorted(rows, key=lambda r: r["seed"])
@@ -118,10 +169,17 @@ def _confidence(scene: str, rows: list[dict[str, Any]], work: Path) -> dict[str,
     self_model, gt_model = folder / "self.npz", folder / "gt.npz"
     train_command([(r["data"], r["labels"]) for r in train], "ensemble", self_model)
     train_command([(r["data"], "gt") for r in train], "ensemble", gt_model)
-    ratios: dict[str, list[float]] = {"self": [], "gt": [], "lrd": []}
+    models: list[Path | str] = [self_model, gt_model, "lrd"]
+    if oracles:
+        mended = [_oracle_folders(r, work) for r in train]
+        for name in ORACLES:
+            model = folder / f"{name}.npz"
+            train_command([(r["data"], m[name]) for r, m in zip(train, mended, strict=True)], "ensemble", model)
+            models.append(model)
+    # Results are keyed by the model files' stems: "self", "gt", "lrd" and the oracles' names.
+    ratios: dict[str, list[float]] = {Path(str(m)).stem: [] for m in models}
     for r in test:
-        # Results are keyed by the model files' stems: "self", "gt", and "lrd".
-        results = evaluate_command([self_model, gt_model, "lrd"], r["data"], folder / f"eval_s{r['seed']}")
+        results = evaluate_command(models, r["data"], folder / f"eval_s{r['seed']}")
         for key, values in ratios.items():
             values.append(float(results[key]["mean"]["ausc_ratio"]))
     out = {f"ausc_ratio_{k}": float(np.mean(v)) for k, v in ratios.items() if v}
@@ -170,6 +228,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default=None, help="folder for labels, models and the plot (default: temporary)")
     parser.add_argument("--plot", default=None, help="PNG of precision / accuracy vs query bad rate")
     parser.add_argument("--confidence", action="store_true", help="also train and score the Ensemble forest")
+    parser.add_argument(
+        "--oracles",
+        action="store_true",
+        help="with --confidence: also train on the self labels mended with ground truth (all, positives, negatives)",
+    )
     parser.add_argument("--threads", type=int, default=0)
     args = parser.parse_args(argv)
     limit_threads(args.threads)
@@ -210,9 +273,9 @@ def main(argv: list[str] | None = None) -> int:
             scenes[scene] = {key: _summary([r[key] for r in mine], better) for key, _, better in FIGURES}
             for stat in ("mean", "std", "worst"):
                 print(f"{scene:<7} {stat:>4} " + " ".join(f"{_pct(scenes[scene][k][stat]):>10}" for k, _, _ in FIGURES))
-        if args.confidence:
+        if args.confidence or args.oracles:
             for scene in tqdm(args.scenes, desc="confidence", unit="scene", file=sys.stderr):
-                result = _confidence(scene, [r for r in rows if r["scene"] == scene], work)
+                result = _confidence(scene, [r for r in rows if r["scene"] == scene], work, oracles=args.oracles)
                 scenes[scene]["confidence"] = result
                 if result:
                     print(
@@ -220,6 +283,8 @@ def main(argv: list[str] | None = None) -> int:
                         f"{result['ausc_ratio_self']:.3f}, ground truth {result['ausc_ratio_gt']:.3f}, "
                         f"ratio {result['self_over_gt']:.3f} (LRD {result['ausc_ratio_lrd']:.3f})"
                     )
+                    for name in ORACLES if args.oracles else ():
+                        print(f"{scene}:   trained on {name}: {result[f'ausc_ratio_{name}']:.3f}")
         if args.plot:
             _plot(rows, Path(args.plot))
             print(f"plot: {args.plot}")
