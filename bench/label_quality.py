@@ -49,6 +49,7 @@ from tqdm import tqdm
 from selfcontra_ros.cli import parse_seeds, parse_size
 from selfcontra_ros.datasets import SCENES
 from selfcontra_ros.datasets.synthetic import write_sequence
+from selfcontra_ros.labels import NEGATIVE, POSITIVE, UNKNOWN
 from selfcontra_ros.threads import limit_threads
 
 # The label benchmark's scenes: the defaults were tuned on their seeds 1-10 (a scene added to
@@ -114,16 +115,16 @@ def _pct(value: float) -> str:
 #: them costs the forest. Each maps (self label image, ground-truth label image) to the training labels.
 ORACLES = {
     # The labelled pixels, each with its true label: what the choice of pixels costs, without label errors.
-    "gt_at_labels": lambda own, gt: np.where(own != 0, gt, 0),
+    "gt_at_labels": lambda own, gt: np.where(own != UNKNOWN, gt, UNKNOWN),
     # Only the positives mended (a wrong one becomes negative): what the wrong positives cost.
-    "gt_positives": lambda own, gt: np.where(own == 1, gt, own),
+    "gt_positives": lambda own, gt: np.where(own == POSITIVE, gt, own),
     # Only the negatives mended (a wrong one becomes positive): what the wrong negatives cost.
-    "gt_negatives": lambda own, gt: np.where(own == 2, gt, own),
+    "gt_negatives": lambda own, gt: np.where(own == NEGATIVE, gt, own),
     # The wrong positives left out (unknown): their cost without adding negatives, which the balanced
     # draw (as many positives as negatives per image) would turn into more samples of both classes.
-    "no_wrong_positives": lambda own, gt: np.where((own == 1) & (gt == 2), 0, own),
+    "no_wrong_positives": lambda own, gt: np.where((own == POSITIVE) & (gt == NEGATIVE), UNKNOWN, own),
     # Every wrong label left out.
-    "no_wrong_labels": lambda own, gt: np.where((own != 0) & (gt != 0) & (gt != own), 0, own),
+    "no_wrong_labels": lambda own, gt: np.where((own != UNKNOWN) & (gt != UNKNOWN) & (gt != own), UNKNOWN, own),
 }
 
 
@@ -131,22 +132,22 @@ def _oracle_folders(row: dict[str, Any], work: Path) -> dict[str, Path]:
     """One label folder per :data:`ORACLES` entry for a labelled sequence, the query disparity matched again."""
     import cv2
 
-    from selfcontra_ros.confidence.commands import iter_frames
+    from selfcontra_ros.confidence.commands import iter_frames, training_matcher
     from selfcontra_ros.evaluation.metrics import ground_truth_labels
-    from selfcontra_ros.matching.base import MatcherParams, make_matcher
+    from selfcontra_ros.matching.base import make_matcher
 
     own_root = Path(row["labels"])
-    metrics = json.loads((own_root / "metrics.json").read_text())
-    matcher = make_matcher(MatcherParams(**metrics["params"]["matcher"]))
+    matcher = make_matcher(training_matcher([(row["data"], own_root)]))  # the labels' own query algorithm
     folders = {name: work / "oracles" / name / own_root.name for name in ORACLES}
     for folder in folders.values():
         (folder / "labels").mkdir(parents=True, exist_ok=True)
         shutil.copy(own_root / "metrics.json", folder / "metrics.json")  # the query algorithm travels with them
     for frame in iter_frames(row["data"]):
         name = f"{frame.index:06d}.png"
-        if not (own_root / "labels" / name).is_file() or frame.gt_disparity is None:
+        own_path = own_root / "labels" / name
+        if not own_path.is_file() or frame.gt_disparity is None:
             continue  # a frame the labeler did not label (the last label_delay of a sequence)
-        own = cv2.imread(str(own_root / "labels" / name), cv2.IMREAD_UNCHANGED)
+        own = cv2.imread(str(own_path), cv2.IMREAD_UNCHANGED)
         gt = ground_truth_labels(matcher.compute(frame.left, frame.right, with_right=False).left, frame.gt_disparity)
         for oracle, mend in ORACLES.items():
             cv2.imwrite(str(folders[oracle] / "labels" / name), mend(own, gt).astype(np.uint8))
@@ -231,7 +232,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--oracles",
         action="store_true",
-        help="with --confidence: also train on the self labels mended with ground truth (all, positives, negatives)",
+        help="also (implies --confidence) train on the self labels mended with ground truth (ORACLES)",
     )
     parser.add_argument("--threads", type=int, default=0)
     args = parser.parse_args(argv)
