@@ -39,11 +39,13 @@ import shutil
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import yaml
+from numpy.typing import NDArray
 from tqdm import tqdm
 
 from selfcontra_ros.cli import parse_seeds, parse_size
@@ -113,7 +115,7 @@ def _pct(value: float) -> str:
 
 #: ``--oracles``: training labels that mend one part of the self labels with the ground truth, to tell what in
 #: them costs the forest. Each maps (self label image, ground-truth label image) to the training labels.
-ORACLES = {
+ORACLES: dict[str, Callable[[NDArray[np.uint8], NDArray[np.uint8]], NDArray[Any]]] = {
     # The labelled pixels, each with its true label: what the choice of pixels costs, without label errors.
     "gt_at_labels": lambda own, gt: np.where(own != UNKNOWN, gt, UNKNOWN),
     # Only the positives mended (a wrong one becomes negative): what the wrong positives cost.
