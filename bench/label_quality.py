@@ -149,7 +149,7 @@ def _oracle_folders(row: dict[str, Any], work: Path) -> dict[str, Path]:
         own_path = own_root / "labels" / name
         if not own_path.is_file() or frame.gt_disparity is None:
             continue  # a frame the labeler did not label (the last label_delay of a sequence)
-        own = cv2.imread(str(own_path), cv2.IMREAD_UNCHANGED)
+        own = np.asarray(cv2.imread(str(own_path), cv2.IMREAD_UNCHANGED), dtype=np.uint8)
         gt = ground_truth_labels(matcher.compute(frame.left, frame.right, with_right=False).left, frame.gt_disparity)
         for oracle, mend in ORACLES.items():
             cv2.imwrite(str(folders[oracle] / "labels" / name), mend(own, gt).astype(np.uint8))
