@@ -30,6 +30,12 @@ Examples::
     python bench/odometry_accuracy.py --cache /tmp/vo_cache
     python bench/odometry_accuracy.py --scenes highway --seeds 6-10 --cache /tmp/vo_cache
     python bench/odometry_accuracy.py --scenes highway --seeds 1-5 --set subpixel=lk --cache /tmp/vo_cache
+    python bench/odometry_accuracy.py --scenes highway --seeds 1-40 --kitti '' --oracle stereo --cache /tmp/vo_cache
+
+``--oracle`` (synthetic only, a diagnosis) takes stereo features away by the
+ground truth before the odometry sees them: those on moving vehicles
+(``static``), those with a gross disparity error (``stereo``), or both;
+see :class:`OracleOdometry`.
 """
 
 from __future__ import annotations
@@ -47,17 +53,22 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy import ndimage
 
 from selfcontra_ros.cli import parse_seeds, parse_size
 from selfcontra_ros.datasets.kitti import open_sequence
 from selfcontra_ros.datasets.synthetic import make_scene
 from selfcontra_ros.geometry import StereoCamera
 from selfcontra_ros.odometry.metrics import evaluate_odometry, path_lengths
-from selfcontra_ros.odometry.stereo_vo import StereoOdometry, VOParams
+from selfcontra_ros.odometry.stereo_vo import StereoOdometry, VOParams, _Features
 
 DEFAULT_KITTI = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "kitti_odometry"
 #: A reliable frame whose motion from the previous frame is off by more than this share of its length is bad.
 BAD_STEP = 0.02
+#: ``--oracle`` choices: which stereo features the ground truth takes away before the odometry sees them.
+ORACLES = ("none", "static", "stereo", "both")
+#: The stereo oracle drops a feature whose disparity is further than this (px) from every true one in 3x3 pixels.
+GROSS_STEREO_PX = 0.7
 
 Frames = list[tuple[NDArray[np.uint8], NDArray[np.uint8], NDArray[np.bool_] | None]]
 
@@ -107,6 +118,62 @@ def synthetic_frames(
     return built.camera, out, built.poses(frames)
 
 
+def true_disparities(
+    scene: str, seed: int, frames: int, size: tuple[int, int], cache: Path | None
+) -> NDArray[np.float32]:
+    """The true left disparity (frames, H, W; NaN where nothing is hit) of a synthetic sequence, cached as .npz."""
+    path = None if cache is None else cache / f"{scene}_{seed}_{frames}_{size[0]}x{size[1]}_disparity.npz"
+    if path is not None and path.exists():
+        with np.load(path, allow_pickle=False) as data:
+            return np.asarray(data["disparity"], dtype=np.float32)
+    built = make_scene(scene, seed, size[0], size[1], frames=frames)
+    out = np.stack([built.render(k).disparity for k in range(frames)]).astype(np.float32)
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(path, disparity=out)
+    return out
+
+
+class OracleOdometry(StereoOdometry):
+    """The odometry with some stereo features taken away by the ground truth (a diagnosis, not a method).
+
+    ``oracle``: ``static`` drops features on moving vehicles (their pixels
+    dilated by 4); ``stereo`` drops features whose disparity is further than
+    :data:`GROSS_STEREO_PX` from every true disparity of the 3x3 pixels around
+    them (gross stereo errors: a window that took a neighbour's depth at an
+    edge, a wrong match); ``both`` does both. Set :attr:`moving` and
+    :attr:`disparity` to the frame's truth before each :meth:`add`. Only each
+    frame's detected features are checked; a matched feature's stereo,
+    measured again where its track points to, is not.
+    """
+
+    def __init__(self, camera: StereoCamera, params: VOParams, oracle: str) -> None:
+        super().__init__(camera, params)
+        self.oracle = oracle
+        self.moving: NDArray[np.bool_] | None = None
+        self.disparity: NDArray[np.float32] | None = None
+        self.offered = self.dropped = 0
+
+    def _stereo(self, left: NDArray[np.uint8], right: NDArray[np.uint8]) -> tuple[_Features, int]:
+        features, detected = super()._stereo(left, right)
+        if self.oracle == "none" or len(features.uv) == 0:
+            return features, detected
+        h, w = left.shape[:2]
+        uv = np.rint(features.uv).astype(np.int64)
+        rows, cols = np.clip(uv[:, 1], 1, h - 2), np.clip(uv[:, 0], 1, w - 2)
+        keep = np.ones(len(uv), dtype=bool)
+        if self.oracle in ("static", "both") and self.moving is not None:
+            keep &= ~ndimage.binary_dilation(self.moving, iterations=4)[rows, cols]
+        if self.oracle in ("stereo", "both") and self.disparity is not None:
+            near = np.stack([self.disparity[rows + dr, cols + dc] for dr in (-1, 0, 1) for dc in (-1, 0, 1)], axis=1)
+            off = np.abs(near - features.disparity[:, None])
+            keep &= np.nan_to_num(off, nan=np.inf).min(axis=1) <= GROSS_STEREO_PX
+        self.offered += len(keep)
+        self.dropped += int((~keep).sum())
+        return _Features(features.uv[keep], features.disparity[keep], features.descriptors[keep],
+                         features.points[keep]), detected  # fmt: skip
+
+
 def kitti_frames(root: Path) -> tuple[StereoCamera, Frames, NDArray[np.float64]]:
     """Camera, frames and ground-truth poses of a KITTI odometry sequence folder."""
     seq = open_sequence(root)
@@ -126,14 +193,22 @@ def step_errors(estimated: NDArray[np.float64], truth: NDArray[np.float64]) -> N
 
 
 def run_sequence(
-    name: str, camera: StereoCamera, frames: Frames, truth: NDArray[np.float64], params: VOParams
+    name: str,
+    camera: StereoCamera,
+    frames: Frames,
+    truth: NDArray[np.float64],
+    params: VOParams,
+    oracle: str = "none",
+    disparities: NDArray[np.float32] | None = None,
 ) -> dict[str, Any]:
-    """Run the odometry over one sequence and measure it against the true poses."""
-    vo = StereoOdometry(camera, params)
+    """Run the odometry over one sequence and measure it against the true poses (``oracle``: see OracleOdometry)."""
+    vo = OracleOdometry(camera, params, oracle)
     moving_features = moving_inliers = features = inliers = 0
     elapsed = 0.0
     median_disparity = []
-    for left, right, moving in frames:
+    for k, (left, right, moving) in enumerate(frames):
+        vo.moving = moving
+        vo.disparity = None if disparities is None else disparities[k]
         started = time.perf_counter()
         result = vo.add(left, right)
         elapsed += time.perf_counter() - started
@@ -175,6 +250,8 @@ def run_sequence(
         "moving_inlier_pct": 100.0 * moving_inliers / inliers if inliers else math.nan,
         "ms_per_frame": 1000.0 * elapsed / len(frames),
         "statuses": sorted({q.status for q in vo.qualities}),
+        "oracle": oracle,
+        "oracle_dropped_pct": 100.0 * vo.dropped / vo.offered if vo.offered else 0.0,
         "per_frame": {
             "f2f_scale_error_pct": [float(v) for v in 100.0 * (f2f / np.maximum(true_steps, 1e-9) - 1.0)],
             "measured": [bool(v) for v in measured],
@@ -322,16 +399,23 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
     return out
 
 
-def _sequences(args: argparse.Namespace) -> Iterator[tuple[str, StereoCamera, Frames, NDArray[np.float64]]]:
+Sequence = tuple[str, StereoCamera, Frames, NDArray[np.float64], NDArray[np.float32] | None]
+
+
+def _sequences(args: argparse.Namespace) -> Iterator[Sequence]:
+    """Name, camera, frames, true poses and (stereo oracle only) true disparities of each sequence."""
     if args.kitti is not None and Path(args.kitti).exists():
         camera, frames, truth = kitti_frames(Path(args.kitti))
-        yield "kitti06", camera, frames, truth
+        yield "kitti06", camera, frames, truth, None
     elif args.kitti is not None:
         print(f"(no KITTI sample at {args.kitti}: skipped)", file=sys.stderr)
     for scene in args.scenes:
         for seed in args.seeds:
             camera, frames, truth = synthetic_frames(scene, seed, args.frames, args.size, args.cache)
-            yield f"{scene}/{seed}", camera, frames, truth
+            disparities = None
+            if args.oracle in ("stereo", "both"):
+                disparities = true_disparities(scene, seed, args.frames, args.size, args.cache)
+            yield f"{scene}/{seed}", camera, frames, truth, disparities
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -349,6 +433,10 @@ def main(argv: list[str] | None = None) -> int:
         "--stereo-bias", nargs="+", metavar="METHOD", help="only measure the stereo features' disparity error "
         "against ground truth for these sub-pixel methods (lk, parabola, none)"
     )  # fmt: skip
+    parser.add_argument(
+        "--oracle", choices=ORACLES, default="none", help="take features away by the ground truth before the "
+        "odometry sees them (synthetic only): static = not on moving vehicles, stereo = no gross disparity error"
+    )  # fmt: skip
     args = parser.parse_args(argv)
     if args.stereo_bias:
         print(json.dumps({"stereo_bias": stereo_bias(args.scenes, args.seeds, args.size, args.stereo_bias)}))
@@ -357,13 +445,18 @@ def main(argv: list[str] | None = None) -> int:
         args.kitti = None
     params = VOParams(**parse_overrides(args.set))
     rows = []
-    for name, camera, frames, truth in _sequences(args):
-        row = run_sequence(name, camera, frames, truth, params)
+    for name, camera, frames, truth, disparities in _sequences(args):
+        row = run_sequence(name, camera, frames, truth, params, args.oracle, disparities)
         rows.append(row)
         print(
             f"{name}: {row['translation_pct']:.2f} %, scale {row['scale_pct']:+.2f} %, "
             f"{row['reliable']}/{row['frames']} reliable, {row['bad_reliable']} bad, "
-            f"{row['ms_per_frame']:.0f} ms/frame",
+            f"{row['ms_per_frame']:.0f} ms/frame"
+            + (
+                f", oracle {args.oracle} dropped {row['oracle_dropped_pct']:.1f} % of the features"
+                if args.oracle != "none"
+                else ""
+            ),
             file=sys.stderr,
             flush=True,
         )
