@@ -160,3 +160,42 @@ def test_kitti_06_drift(shared_data: Path) -> None:
     # libviso2's level on KITTI; this 60 m straight stretch gives about 1.7 %.
     assert m.translation_error_pct < 2.0, m.summary()
     assert m.rotation_error_deg_per_m < 0.05, m.summary()
+
+
+def test_unmatched_features_are_followed_to_the_same_surface_point() -> None:
+    """``_follow_unmatched`` adds matches whose followed positions are where the true motion takes the points."""
+    from selfcontra_ros.datasets.synthetic import make_scene
+
+    built = make_scene("highway", 1, WIDTH, HEIGHT, frames=3)
+    first, second = built.render(0), built.render(1)
+    vo = StereoOdometry(built.camera)
+    ref, _ = vo._stereo(first.left, first.right)
+    cur, _ = vo._stereo(second.left, second.right)
+    # True positions: each reference feature's true 3D point moved by the true motion (vehicles left out).
+    uv = np.rint(ref.uv).astype(int)
+    static = ~first.moving[uv[:, 1], uv[:, 0]] & np.isfinite(first.depth[uv[:, 1], uv[:, 0]])
+    depth = np.where(static, first.depth[uv[:, 1], uv[:, 0]], 10.0)
+    cam = built.camera
+    points = np.column_stack(
+        [(ref.uv[:, 0] - cam.cx) * depth / cam.fx, (ref.uv[:, 1] - cam.cy) * depth / cam.fy, depth]
+    )
+    t_cur_ref = invert_pose(second.pose) @ first.pose
+    true_uv, _ = vo._project(points, t_cur_ref)
+    # Nothing matched by descriptors; the prediction is the reference's measured point under the true motion.
+    pred_uv, _ = vo._project(ref.points, t_cur_ref)
+    seen = np.flatnonzero(np.isfinite(pred_uv).all(axis=1) & static)
+    none = np.zeros(0, np.int64)
+    ri, ci, went = vo._follow_unmatched(
+        first.left, second.left, ref, cur, pred_uv, seen, 30.0, none, none, np.zeros((0, 2))
+    )
+    assert len(ri) >= 0.2 * len(seen), (len(ri), len(seen))
+    assert len(np.unique(ci)) == len(ci) and np.isin(ri, seen).all()
+    assert (np.linalg.norm(cur.uv[ci] - went, axis=1) <= 3.0 + 1e-9).all()
+    error = np.linalg.norm(went - true_uv[ri], axis=1)
+    # LK tolerance plus depth edges, where a feature's true depth is the background's: most within 1 px.
+    # LK on a frame 3 m on (scale change) plus depth edges, where a feature's true depth is the background's:
+    # most land within a pixel or two of the truth (the prediction from the measured points is about as close).
+    assert np.median(error) < 1.0 and (error < 2.0).mean() > 0.75, (np.median(error), (error < 2.0).mean())
+    # Already matched corners are not taken again.
+    _, ci2, _ = vo._follow_unmatched(first.left, second.left, ref, cur, pred_uv, seen, 30.0, none, ci, went)
+    assert (ci2[: len(ci)] == ci).all() and not np.isin(ci2[len(ci) :], ci).any()
