@@ -669,10 +669,8 @@ class StereoOdometry:
         distance = np.linalg.norm(went[q] - cur.uv[t], axis=1)
         close = distance <= 3.0
         q, t, distance = q[close], t[close], distance[close]
-        order = np.lexsort((distance, q))  # per followed feature, its nearest corner first
-        q, t = q[order], t[order]
-        first = np.r_[True, q[1:] != q[:-1]] if len(q) else np.zeros(0, bool)
-        q, t = q[first], t[first]
+        nearest, _ = _best_two(q, distance)  # per followed feature, its nearest corner
+        q, t = q[nearest], t[nearest]
         free = ~np.isin(t, ci)  # nearest corner already matched by its descriptor: the feature is not added
         q, t = q[free], t[free]
         _, once = np.unique(t, return_index=True)  # a corner claimed twice goes to one of them
@@ -1416,7 +1414,7 @@ def _left_jacobian(rotvec: F64) -> F64:
     return np.eye(3) + a[:, None, None] * k + b[:, None, None] * (k @ k)
 
 
-def _best_two(group: NDArray[np.int64], value: NDArray[np.int64]) -> tuple[NDArray[np.int64], F64]:
+def _best_two(group: NDArray[np.int64], value: NDArray[np.int64] | F64) -> tuple[NDArray[np.int64], F64]:
     """Per group (sorted by group): the index of its smallest value, and its second smallest value (inf if none).
 
     Ties between the smallest go to the earlier entry; its second smallest is then equal to it.

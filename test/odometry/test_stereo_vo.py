@@ -9,7 +9,7 @@ import pytest
 
 from selfcontra_ros.bags.kitti2mcap import kitti_to_mcap
 from selfcontra_ros.datasets.kitti import open_sequence, read_poses
-from selfcontra_ros.datasets.synthetic import write_sequence
+from selfcontra_ros.datasets.synthetic import make_scene, write_sequence
 from selfcontra_ros.geometry import invert_pose
 from selfcontra_ros.odometry.metrics import evaluate_odometry
 from selfcontra_ros.odometry.run import (
@@ -164,8 +164,6 @@ def test_kitti_06_drift(shared_data: Path) -> None:
 
 def test_unmatched_features_are_followed_to_the_same_surface_point() -> None:
     """``_follow_unmatched`` adds matches whose followed positions are where the true motion takes the points."""
-    from selfcontra_ros.datasets.synthetic import make_scene
-
     built = make_scene("highway", 1, WIDTH, HEIGHT, frames=3)
     first, second = built.render(0), built.render(1)
     vo = StereoOdometry(built.camera)
@@ -192,7 +190,6 @@ def test_unmatched_features_are_followed_to_the_same_surface_point() -> None:
     assert len(np.unique(ci)) == len(ci) and np.isin(ri, seen).all()
     assert (np.linalg.norm(cur.uv[ci] - went, axis=1) <= 3.0 + 1e-9).all()
     error = np.linalg.norm(went - true_uv[ri], axis=1)
-    # LK tolerance plus depth edges, where a feature's true depth is the background's: most within 1 px.
     # LK on a frame 3 m on (scale change) plus depth edges, where a feature's true depth is the background's:
     # most land within a pixel or two of the truth (the prediction from the measured points is about as close).
     assert np.median(error) < 1.0 and (error < 2.0).mean() > 0.75, (np.median(error), (error < 2.0).mean())
