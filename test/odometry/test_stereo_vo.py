@@ -173,10 +173,7 @@ def test_unmatched_features_are_followed_to_the_same_surface_point() -> None:
     uv = np.rint(ref.uv).astype(int)
     static = ~first.moving[uv[:, 1], uv[:, 0]] & np.isfinite(first.depth[uv[:, 1], uv[:, 0]])
     depth = np.where(static, first.depth[uv[:, 1], uv[:, 0]], 10.0)
-    cam = built.camera
-    points = np.column_stack(
-        [(ref.uv[:, 0] - cam.cx) * depth / cam.fx, (ref.uv[:, 1] - cam.cy) * depth / cam.fy, depth]
-    )
+    points = vo._triangulate(ref.uv, built.camera.focal_baseline / depth)
     t_cur_ref = invert_pose(second.pose) @ first.pose
     true_uv, _ = vo._project(points, t_cur_ref)
     # Nothing matched by descriptors; the prediction is the reference's measured point under the true motion.
