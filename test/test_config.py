@@ -106,6 +106,9 @@ def test_invalid_values_and_malformed_files(tmp_path: Path) -> None:
     path = _write(tmp_path / "bad2.yaml", {"labeler": {"label_delay": 25}})
     with pytest.raises(SelfContraError, match="label_delay"):
         load_params(path)
+    path = _write(tmp_path / "bad3.yaml", {"labeler": {"stage3_min_free_space_views": -1}})
+    with pytest.raises(SelfContraError, match="stage3_min_free_space_views"):
+        load_params(path)
     with pytest.raises(SelfContraError, match="cannot read"):
         load_params(tmp_path / "missing.yaml")
     (tmp_path / "node.yaml").write_text("talker:\n  ros__parameters: {}\n")

@@ -368,6 +368,7 @@ _CORE_INT_RANGES: dict[str, list[IntegerRange]] = {
     "labeler.window_size": _int_range(2, 1000),
     "labeler.label_delay": _int_range(0, 999),
     "labeler.min_positive_votes": _int_range(1, 1000),
+    "labeler.stage3_min_free_space_views": _int_range(0, 1000),
     "confidence.retrain_every": _int_range(1, 1_000_000),
     "confidence.reservoir_per_class": _int_range(1, 10_000_000),
     "confidence.samples_per_view": _int_range(1, 10_000_000),

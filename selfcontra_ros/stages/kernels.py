@@ -1092,6 +1092,49 @@ def outlier_negatives_kernel(
     return negative
 
 
+@njit(cache=True, error_model="numpy", parallel=True)
+def free_space_witnesses_kernel(
+    count: np.ndarray,
+    pixels: np.ndarray,
+    query_points: np.ndarray,
+    query_u: np.ndarray,
+    ref_points: np.ndarray,
+    ref_valid: np.ndarray,
+    ref_u: np.ndarray,
+    ref_from_query: np.ndarray,
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    width: int,
+    height: int,
+    sigma_max: float,
+    reading: int,
+) -> None:
+    """Stage 3, in place: add 1 to ``count[i]`` where one reference sees through query pixel ``pixels[i]``'s point.
+
+    The reference sees through ``X_q`` where ``X_q`` projects onto a valid
+    measurement of it lying *behind* ``X_q`` (along the reference ray) by more
+    than :func:`candidate_tolerance_scalar` of the two uncertainties: that
+    view looked through the place where the query puts a surface. One
+    reference per call (its own arrays, no stacked copies of the window).
+    """
+    for i in prange(pixels.shape[0]):
+        p = pixels[i]
+        x, y, z = np.float64(query_points[p, 0]), np.float64(query_points[p, 1]), np.float64(query_points[p, 2])
+        rx, ry, rz = transform_scalar(ref_from_query, x, y, z)
+        j = project_scalar(rx, ry, rz, fx, fy, cx, cy, width, height)
+        if j < 0 or not ref_valid[j]:
+            continue
+        range_q = math.sqrt(rx * rx + ry * ry + rz * rz)
+        mx, my, mz = np.float64(ref_points[j, 0]), np.float64(ref_points[j, 1]), np.float64(ref_points[j, 2])
+        range_r = math.sqrt(mx * mx + my * my + mz * mz)
+        if range_r - range_q > candidate_tolerance_scalar(
+            np.float64(query_u[p]), np.float64(ref_u[j]), sigma_max, reading
+        ):
+            count[i] += 1
+
+
 # ---------------------------------------------------------------------------------------------------------------------
 # Stage 2: consistency voting of one reference view, all query pixels in one pass.
 

@@ -33,6 +33,7 @@ __all__ = [
     "augmented_depth",
     "augmented_margin",
     "candidate_tolerance",
+    "free_space_witnesses",
     "outlier_negatives",
     "trivial_outliers",
 ]
@@ -180,13 +181,18 @@ def outlier_negatives(
     sigma_max: float,
     sigma_px: float,
     reading: str,
+    refs: list[View] | None = None,
+    min_free_space_views: int = 0,
 ) -> NDArray[np.bool_]:
     """Pending query pixels (flat) whose depth lies in front of the augmented depth by more than the margin.
 
     One pass per pixel (:func:`selfcontra_ros.stages.kernels.outlier_negatives_kernel`); the margin is
     :func:`augmented_margin` of ``u_aug``, the augmented point's uncertainty as seen by Q's pair alone.
+    With ``min_free_space_views > 0`` (a deviation, see ``LabelerParams.stage3_min_free_space_views``)
+    such a pixel stays negative only where at least that many of ``refs`` see through its point
+    (:func:`free_space_witnesses`).
     """
-    return kernels.outlier_negatives_kernel(
+    negative = kernels.outlier_negatives_kernel(
         np.ascontiguousarray(query.points[:, 2]),
         np.ascontiguousarray(z_aug, dtype=np.float64).reshape(-1),
         np.ascontiguousarray(pending, dtype=np.bool_).reshape(-1),
@@ -200,3 +206,53 @@ def outlier_negatives(
         float(sigma_max),
         _reading(reading),
     )
+    if min_free_space_views > 0:
+        pixels = np.flatnonzero(negative)
+        witnesses = free_space_witnesses(query, refs or [], pixels, camera, sigma_max=sigma_max, reading=reading)
+        negative[pixels[witnesses < min_free_space_views]] = False
+    return negative
+
+
+def free_space_witnesses(
+    query: View,
+    refs: list[View],
+    pixels: NDArray[np.integer],
+    camera: StereoCamera,
+    *,
+    sigma_max: float,
+    reading: str,
+) -> NDArray[np.int32]:
+    """How many of ``refs`` see through the query point of each flat pixel index in ``pixels``.
+
+    A reference sees through ``X_q`` where ``X_q`` projects onto one of its
+    valid measurements lying behind ``X_q`` along its ray by more than
+    :func:`candidate_tolerance` of the two uncertainties (the free-space
+    violation of DESIGN section 3, counted per view). Stage 3 calls ``X_q`` an
+    outlier because a surface the views agree on lies behind it; a view that
+    looked through ``X_q``'s place is the evidence that nothing stands there.
+    """
+    pixels = np.ascontiguousarray(pixels, dtype=np.int64)
+    if not refs or pixels.size == 0:
+        return np.zeros(pixels.size, dtype=np.int32)
+    count = np.zeros(pixels.size, dtype=np.int32)
+    code = _reading(reading)
+    for ref in refs:
+        kernels.free_space_witnesses_kernel(
+            count,
+            pixels,
+            query.points,
+            query.u,
+            ref.points,
+            ref.valid,
+            ref.u,
+            ref.from_view(query),
+            camera.fx,
+            camera.fy,
+            camera.cx,
+            camera.cy,
+            camera.width,
+            camera.height,
+            float(sigma_max),
+            code,
+        )
+    return count

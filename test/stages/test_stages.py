@@ -12,6 +12,7 @@ from selfcontra_ros.stages.outliers import (
     augmented_depth,
     augmented_margin,
     candidate_tolerance,
+    free_space_witnesses,
     outlier_negatives,
     trivial_outliers,
 )
@@ -320,6 +321,61 @@ def test_candidates_need_enough_positive_votes() -> None:
     assert np.all(np.isnan(z_aug))
     z_aug = augmented_depth(query, refs, pending, CAMERA, reading="std", min_positive_votes=2, **KW)
     assert np.isfinite(z_aug.reshape(CAMERA.height, CAMERA.width)[CENTRE]).all()
+
+
+def _witnesses_by_numpy(query: View, refs: list[View], pixels: np.ndarray) -> np.ndarray:
+    """free_space_witnesses written out per reference with numpy (same projection, same tolerance)."""
+    count = np.zeros(pixels.size, dtype=int)
+    x_q = query.points[pixels].astype(np.float64)
+    for ref in refs:
+        t = ref.from_view(query)
+        moved = x_q @ t[:3, :3].T + t[:3, 3]
+        col = np.rint(CAMERA.fx * moved[:, 0] / moved[:, 2] + CAMERA.cx)
+        row = np.rint(CAMERA.fy * moved[:, 1] / moved[:, 2] + CAMERA.cy)
+        inside = (moved[:, 2] > 0) & (col >= 0) & (col <= CAMERA.width - 1) & (row >= 0) & (row <= CAMERA.height - 1)
+        j = np.where(inside, row * CAMERA.width + col, 0).astype(int)
+        seen = inside & ref.valid[j]
+        behind = np.linalg.norm(ref.points[j].astype(np.float64), axis=1) - np.linalg.norm(moved, axis=1)
+        tolerance = candidate_tolerance(query.u[pixels], ref.u[j], 2.0, "std")
+        count += seen & (behind > tolerance)
+    return count
+
+
+def test_free_space_witnesses_count_the_references_seeing_through_the_query_point() -> None:
+    refs = [view_at(a, index=i) for i, a in enumerate((-24.0, -12.0, 12.0, 24.0))]
+    pixels = np.flatnonzero(view_at(0.0).valid)
+    on_wall = free_space_witnesses(view_at(0.0), refs, pixels, CAMERA, sigma_max=2.0, reading="std")
+    assert not on_wall.any()  # a point on the wall blocks nobody's view
+    near = view_at(0.0, scale=1.6)
+    counts = free_space_witnesses(near, refs, pixels, CAMERA, sigma_max=2.0, reading="std")
+    np.testing.assert_array_equal(counts, _witnesses_by_numpy(near, refs, pixels))
+    assert np.all(counts.reshape(CAMERA.height, CAMERA.width)[CENTRE] == len(refs))
+
+
+def test_stage3_negative_needs_a_view_that_sees_through_the_query_point() -> None:
+    refs = [view_at(a, index=i) for i, a in enumerate((-24.0, -12.0, 12.0, 24.0))]
+    query = view_at(0.0, scale=1.6)  # every centre pixel in front of the wall the references agree on
+    centre = np.zeros((CAMERA.height, CAMERA.width), dtype=bool)
+    centre[CENTRE] = True
+    sel = centre.ravel()
+    for ref in refs:
+        # Blind each reference where the centre's query points fall: it can no longer see through them,
+        # while the wall behind them (the augmented depth) lies elsewhere in its image and stays measured.
+        t = ref.from_view(query)
+        moved = query.points[sel].astype(np.float64) @ t[:3, :3].T + t[:3, 3]
+        col = np.rint(CAMERA.fx * moved[:, 0] / moved[:, 2] + CAMERA.cx).astype(int)
+        row = np.rint(CAMERA.fy * moved[:, 1] / moved[:, 2] + CAMERA.cy).astype(int)
+        inside = (col >= 0) & (col < CAMERA.width) & (row >= 0) & (row < CAMERA.height)
+        ref.valid[row[inside] * CAMERA.width + col[inside]] = False
+    pending = query.valid.copy()
+    z_aug = augmented_depth(query, refs, pending, CAMERA, reading="std", min_positive_votes=3, **KW)
+    assert np.isfinite(z_aug[sel]).all()
+    paper = outlier_negatives(query, z_aug, pending, CAMERA, reading="std", **KW)
+    assert paper[sel].all()
+    witnessed = outlier_negatives(query, z_aug, pending, CAMERA, reading="std", refs=refs, min_free_space_views=1, **KW)
+    assert not witnessed[sel].any()
+    # Elsewhere the references still see through the near points: those stay negative.
+    assert witnessed[paper & ~sel].sum() > 0.5 * paper[~sel].sum()
 
 
 def test_stage3_tolerance_readings() -> None:
