@@ -326,6 +326,9 @@ class LabelerParams:
             39.8 -> 96.05 / 32.60 / 39.4 -> 96.33 / 32.11 / 38.6. Each step
             buys accuracy with a point of bad recall (negatives the forest
             learns from); 3 was not taken for that reason (see the README).
+            The count is absolute, so a short window (few references) keeps
+            fewer Stage-3 negatives: on 6-frame test inputs (window of 6)
+            too few were left to train a forest, and their tests use 0.
         keyframe_min_translation: metres; a view closer than this to the
             newest kept view (left camera centres) and rotated less than
             ``keyframe_min_rotation_deg`` from it is skipped. Default 0.05 m.

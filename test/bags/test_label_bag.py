@@ -189,7 +189,7 @@ def test_confidence_switches_from_lrd_to_the_trained_forest(in_bag: Path, tmp_pa
 
     params = tmp_path / "params.yaml"
     params.write_text(
-        "labeler:\n  ros__parameters:\n    labeler: {window_size: 6, label_delay: 3}\n"
+        "labeler:\n  ros__parameters:\n    labeler: {window_size: 6, label_delay: 3, stage3_min_free_space_views: 0}\n"
         "    confidence: {retrain_every: 2, samples_per_view: 500, n_estimators: 3, max_depth: 8}\n"
     )
     model = tmp_path / "model.npz"
