@@ -865,6 +865,37 @@ def _sort_groups(start: np.ndarray, values: np.ndarray) -> None:
             values[b + 1] = value
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def reference_ranges_scalar(
+    ref_from_query: np.ndarray,
+    x: float,
+    y: float,
+    z: float,
+    ref_points: np.ndarray,
+    ref_valid: np.ndarray,
+    k: int,
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    width: int,
+    height: int,
+) -> tuple[int, float, float]:
+    """Stage 3's lookup of a query-frame point in reference ``k`` (``ref_points[k]``, ``ref_valid[k]``).
+
+    Returns ``(j, range_point, range_measured)``: the reference pixel the
+    point projects to, the point's distance from the reference's left camera
+    and that of the reference's measurement at ``j`` (metres); ``j = -1``
+    (ranges NaN) outside the image or without a valid measurement there.
+    """
+    rx, ry, rz = transform_scalar(ref_from_query, x, y, z)
+    j = project_scalar(rx, ry, rz, fx, fy, cx, cy, width, height)
+    if j < 0 or not ref_valid[k, j]:
+        return -1, np.nan, np.nan
+    px, py, pz = np.float64(ref_points[k, j, 0]), np.float64(ref_points[k, j, 1]), np.float64(ref_points[k, j, 2])
+    return j, math.sqrt(rx * rx + ry * ry + rz * rz), math.sqrt(px * px + py * py + pz * pz)
+
+
 @njit(cache=True, error_model="numpy")
 def candidate_is_valid(
     p: int,
@@ -903,18 +934,12 @@ def candidate_is_valid(
     total = 0
     n_refs = ref_points.shape[0]
     for k in range(n_refs):
-        rx, ry, rz = transform_scalar(ref_from_query[k], x, y, z)
-        j = project_scalar(rx, ry, rz, fx, fy, cx, cy, width, height)
-        if j >= 0 and ref_valid[k, j]:
+        j, range_c, range_r = reference_ranges_scalar(
+            ref_from_query[k], x, y, z, ref_points, ref_valid, k, fx, fy, cx, cy, width, height
+        )
+        if j >= 0:
             if u_c < 0:
                 u_c = largest_eigenvalue_scalar(x, y, z, fx, fy, baseline, sigma_px)
-            range_c = math.sqrt(rx * rx + ry * ry + rz * rz)
-            px, py, pz = (
-                np.float64(ref_points[k, j, 0]),
-                np.float64(ref_points[k, j, 1]),
-                np.float64(ref_points[k, j, 2]),
-            )
-            range_r = math.sqrt(px * px + py * py + pz * pz)
             tol = candidate_tolerance_scalar(u_c, np.float64(ref_u[k, j]), sigma_max, reading)
             if abs(range_c - range_r) <= tol:
                 plus += 1
@@ -1117,20 +1142,18 @@ def free_space_witnesses_kernel(
     measurement of it lying *behind* ``X_q`` (along the reference ray) by more
     than :func:`candidate_tolerance_scalar` of the two uncertainties: that
     view looked through the place where the query puts a surface. One
-    reference per call (its own arrays, no stacked copies of the window).
+    reference per call, as a stack of one (``ref_points[None]``, a view: no
+    copy of the window), looked up by :func:`reference_ranges_scalar` as the
+    candidates' votes are.
     """
     for i in prange(pixels.shape[0]):
         p = pixels[i]
         x, y, z = np.float64(query_points[p, 0]), np.float64(query_points[p, 1]), np.float64(query_points[p, 2])
-        rx, ry, rz = transform_scalar(ref_from_query, x, y, z)
-        j = project_scalar(rx, ry, rz, fx, fy, cx, cy, width, height)
-        if j < 0 or not ref_valid[j]:
-            continue
-        range_q = math.sqrt(rx * rx + ry * ry + rz * rz)
-        mx, my, mz = np.float64(ref_points[j, 0]), np.float64(ref_points[j, 1]), np.float64(ref_points[j, 2])
-        range_r = math.sqrt(mx * mx + my * my + mz * mz)
-        if range_r - range_q > candidate_tolerance_scalar(
-            np.float64(query_u[p]), np.float64(ref_u[j]), sigma_max, reading
+        j, range_q, range_r = reference_ranges_scalar(
+            ref_from_query, x, y, z, ref_points, ref_valid, 0, fx, fy, cx, cy, width, height
+        )
+        if j >= 0 and range_r - range_q > candidate_tolerance_scalar(
+            np.float64(query_u[p]), np.float64(ref_u[0, j]), sigma_max, reading
         ):
             count[i] += 1
 

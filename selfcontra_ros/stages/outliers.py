@@ -207,8 +207,10 @@ def outlier_negatives(
         _reading(reading),
     )
     if min_free_space_views > 0:
+        if refs is None:
+            raise ValueError("outlier_negatives: min_free_space_views > 0 needs the references (refs)")
         pixels = np.flatnonzero(negative)
-        witnesses = free_space_witnesses(query, refs or [], pixels, camera, sigma_max=sigma_max, reading=reading)
+        witnesses = free_space_witnesses(query, refs, pixels, camera, sigma_max=sigma_max, reading=reading)
         negative[pixels[witnesses < min_free_space_views]] = False
     return negative
 
@@ -232,8 +234,6 @@ def free_space_witnesses(
     looked through ``X_q``'s place is the evidence that nothing stands there.
     """
     pixels = np.ascontiguousarray(pixels, dtype=np.int64)
-    if not refs or pixels.size == 0:
-        return np.zeros(pixels.size, dtype=np.int32)
     count = np.zeros(pixels.size, dtype=np.int32)
     code = _reading(reading)
     for ref in refs:
@@ -242,9 +242,9 @@ def free_space_witnesses(
             pixels,
             query.points,
             query.u,
-            ref.points,
-            ref.valid,
-            ref.u,
+            ref.points[None],
+            ref.valid[None],
+            ref.u[None],
             ref.from_view(query),
             camera.fx,
             camera.fy,

@@ -323,17 +323,21 @@ def test_candidates_need_enough_positive_votes() -> None:
     assert np.isfinite(z_aug.reshape(CAMERA.height, CAMERA.width)[CENTRE]).all()
 
 
+def _query_points_in(ref: View, query: View, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Query points of ``pixels`` in ``ref``'s frame, whether each lands in its image, and that pixel (0 if not)."""
+    t = ref.from_view(query)
+    moved = query.points[pixels].astype(np.float64) @ t[:3, :3].T + t[:3, 3]
+    col = np.rint(CAMERA.fx * moved[:, 0] / moved[:, 2] + CAMERA.cx)
+    row = np.rint(CAMERA.fy * moved[:, 1] / moved[:, 2] + CAMERA.cy)
+    inside = (moved[:, 2] > 0) & (col >= 0) & (col <= CAMERA.width - 1) & (row >= 0) & (row <= CAMERA.height - 1)
+    return moved, inside, np.where(inside, row * CAMERA.width + col, 0).astype(int)
+
+
 def _witnesses_by_numpy(query: View, refs: list[View], pixels: np.ndarray) -> np.ndarray:
     """free_space_witnesses written out per reference with numpy (same projection, same tolerance)."""
     count = np.zeros(pixels.size, dtype=int)
-    x_q = query.points[pixels].astype(np.float64)
     for ref in refs:
-        t = ref.from_view(query)
-        moved = x_q @ t[:3, :3].T + t[:3, 3]
-        col = np.rint(CAMERA.fx * moved[:, 0] / moved[:, 2] + CAMERA.cx)
-        row = np.rint(CAMERA.fy * moved[:, 1] / moved[:, 2] + CAMERA.cy)
-        inside = (moved[:, 2] > 0) & (col >= 0) & (col <= CAMERA.width - 1) & (row >= 0) & (row <= CAMERA.height - 1)
-        j = np.where(inside, row * CAMERA.width + col, 0).astype(int)
+        moved, inside, j = _query_points_in(ref, query, pixels)
         seen = inside & ref.valid[j]
         behind = np.linalg.norm(ref.points[j].astype(np.float64), axis=1) - np.linalg.norm(moved, axis=1)
         tolerance = candidate_tolerance(query.u[pixels], ref.u[j], 2.0, "std")
@@ -361,12 +365,8 @@ def test_stage3_negative_needs_a_view_that_sees_through_the_query_point() -> Non
     for ref in refs:
         # Blind each reference where the centre's query points fall: it can no longer see through them,
         # while the wall behind them (the augmented depth) lies elsewhere in its image and stays measured.
-        t = ref.from_view(query)
-        moved = query.points[sel].astype(np.float64) @ t[:3, :3].T + t[:3, 3]
-        col = np.rint(CAMERA.fx * moved[:, 0] / moved[:, 2] + CAMERA.cx).astype(int)
-        row = np.rint(CAMERA.fy * moved[:, 1] / moved[:, 2] + CAMERA.cy).astype(int)
-        inside = (col >= 0) & (col < CAMERA.width) & (row >= 0) & (row < CAMERA.height)
-        ref.valid[row[inside] * CAMERA.width + col[inside]] = False
+        _, inside, j = _query_points_in(ref, query, np.flatnonzero(sel))
+        ref.valid[j[inside]] = False
     pending = query.valid.copy()
     z_aug = augmented_depth(query, refs, pending, CAMERA, reading="std", min_positive_votes=3, **KW)
     assert np.isfinite(z_aug[sel]).all()
