@@ -5,7 +5,7 @@ The file has the form ROS 2's ``--params-file`` reads::
     labeler:                # the node name (``/**`` also accepted)
       ros__parameters:
         matcher: {algorithm: sgbm, num_disparities: 128, ...}   # MatcherParams
-        labeler: {window_size: ..., alpha_min_deg: 10.0, ...}   # LabelerParams
+        labeler: {window_size: ..., alpha_min_deg: 7.0, ...}   # LabelerParams
         confidence: {feature_set: gcp, retrain_every: 10, ...}  # ConfidenceParams
         threads: 0          # node-level keys (NODE_PARAMETERS) sit beside the sections
 

@@ -109,6 +109,9 @@ def test_invalid_values_and_malformed_files(tmp_path: Path) -> None:
     path = _write(tmp_path / "bad3.yaml", {"labeler": {"stage3_min_free_space_views": -1}})
     with pytest.raises(SelfContraError, match="stage3_min_free_space_views"):
         load_params(path)
+    path = _write(tmp_path / "bad4.yaml", {"labeler": {"stage2_positive_accuracy_ratio": 0.5}})
+    with pytest.raises(SelfContraError, match="stage2_positive_accuracy_ratio"):
+        load_params(path)
     with pytest.raises(SelfContraError, match="cannot read"):
         load_params(tmp_path / "missing.yaml")
     (tmp_path / "node.yaml").write_text("talker:\n  ros__parameters: {}\n")

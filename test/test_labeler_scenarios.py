@@ -168,11 +168,12 @@ def test_region_seen_from_one_direction_stays_unknown(arc: tuple[list[np.ndarray
 
 
 def test_views_closer_than_alpha_min_give_no_support() -> None:
-    # At most 8 degrees apart at the wall (the wall alone: a nearby floor would see larger angles).
-    angles = (-4.0, -2.0, 0.0, 2.0, 4.0)
-    poses = [orbit_pose(a) for a in angles]
-    disparities = [CAMERA.depth_to_disparity(render_depth(p, PLANES[:1])) for p in poses]
+    # The default alpha_min; the views at most 0.8 of it apart at the wall (the wall alone: a nearby floor
+    # would see larger angles).
     params = LabelerParams(window_size=5, label_delay=2, flush_incomplete=True)
+    step = 0.2 * params.alpha_min_deg
+    poses = [orbit_pose(k * step) for k in (-2, -1, 0, 1, 2)]
+    disparities = [CAMERA.depth_to_disparity(render_depth(p, PLANES[:1])) for p in poses]
     results = run(disparities, poses, params)
     assert len(results) == 5
     for result in results:

@@ -1260,21 +1260,24 @@ def lookup_votes_kernel(
     negative_sq: float,
     min_angle_deg: float,
     negatives_from_any: np.ndarray,
+    positive_accuracy_ratio: float,
 ) -> None:
     """Stage 2, lookup: add one reference view's positive or occlusion vote to each valid query pixel, in place.
 
     Per valid query pixel ``i`` (``X_q``, query frame): ``X_q`` into the
     reference, nearest pixel ``j``; a valid, supported (``support_r >= 1``)
     measurement that is more accurate (``u_r < u_q``, or any where
-    ``negatives_from_any[i]``, a bool per query pixel) is compared by the squared tolerance distance
-    ``m2`` (reading ``mode``). Within ``positive_sq`` and more accurate:
+    ``negatives_from_any[i]``, a bool per query pixel), or that may vote positive
+    (``u_r < positive_accuracy_ratio * u_q``, a ratio >= 1), is compared by the squared tolerance distance
+    ``m2`` (reading ``mode``). Within ``positive_sq`` and allowed to vote positive:
     ``+support_r / sqrt(u_r)``, or no vote when the observation angle between
     the mean centres ``centre_r``, ``centre_q`` (query frame, metres) is not
     above ``min_angle_deg`` (> 0); beyond ``negative_sq`` with ``X_q`` nearer
-    the reference camera than ``X_r`` (occlusion): ``-support_r / sqrt(u_r)``.
-    Either of these, or a more accurate measurement that agrees only between the
-    two tolerances, decides the reference's vote; ``pending[i]`` is set where
-    nothing decided it (the splat's turn, :func:`free_space_votes_kernel`).
+    the reference camera than ``X_r`` (occlusion), from a measurement that may vote
+    negative: ``-support_r / sqrt(u_r)``. Either of these, or a measurement allowed to
+    vote positive that agrees only between the two tolerances, decides the
+    reference's vote; ``pending[i]`` is set where nothing decided it (the splat's
+    turn, :func:`free_space_votes_kernel`).
 
     ``vote_sum[i] += vote`` and ``voted[i] |= vote != 0``: called once per
     reference in window order, the sums are those of adding whole vote arrays
@@ -1293,8 +1296,9 @@ def lookup_votes_kernel(
         j = project_scalar(x, y, z, fx, fy, cx, cy, width, height)
         if j >= 0 and r_valid[j] and r_bits[j] != np.uint64(0):
             u_r = np.float64(r_u[j])
-            accurate = u_r < u_q
-            if accurate or negatives_from_any[i]:
+            may_negative = u_r < u_q or negatives_from_any[i]
+            may_positive = u_r < positive_accuracy_ratio * u_q
+            if may_negative or may_positive:
                 xr, yr, zr = np.float64(r_points[j, 0]), np.float64(r_points[j, 1]), np.float64(r_points[j, 2])
                 xrq, yrq, zrq = transform_scalar(query_from_ref, xr, yr, zr)
                 m2 = tolerance_sq_capped_scalar(
@@ -1320,7 +1324,7 @@ def lookup_votes_kernel(
                 far = m2 > negative_sq
                 in_front = math.sqrt(x * x + y * y + z * z) < math.sqrt(xr * xr + yr * yr + zr * zr)
                 weight = np.float64(support_count_scalar(r_bits[j])) / math.sqrt(u_r)
-                if m2 <= positive_sq and accurate:
+                if m2 <= positive_sq and may_positive:
                     # A reference seen from nearly the query's direction repeats the query's systematic error
                     # (same image patches, same ambiguity): its agreement decides its vote but does not count.
                     if min_angle_deg <= 0 or (
@@ -1330,10 +1334,10 @@ def lookup_votes_kernel(
                         > min_angle_deg
                     ):
                         vote = weight
-                elif far and in_front:
+                elif far and in_front and may_negative:
                     vote = -weight
                 # A lookup that agrees only roughly (between the two tolerances) decides too: no splat vote then.
-                decided = (not far and accurate) or (far and in_front)
+                decided = (not far and may_positive) or (far and in_front and may_negative)
         pending[i] = not decided
         if vote != 0.0:
             vote_sum[i] += vote

@@ -116,6 +116,7 @@ def _reference_votes(
     splat_bits: NDArray[np.uint64] | None = None,
     free_space_sum: NDArray[np.float64] | None = None,
     free_space_voted: NDArray[np.bool_] | None = None,
+    positive_accuracy_ratio: float = 1.0,
 ) -> None:
     """Add the vote (if any) of one reference view to every valid query pixel, in place (flat ``(H*W,)``).
 
@@ -128,7 +129,8 @@ def _reference_votes(
     ``support_bits``) are the support the splat and its votes use: zero leaves a reference point out.
     ``negatives_from_any`` (flat, per query pixel): where any supported reference measurement may vote negative,
     not only a more accurate one. ``free_space_sum`` / ``free_space_voted`` (flat, both or neither): where the
-    free-space votes go instead of ``vote_sum`` / ``voted``.
+    free-space votes go instead of ``vote_sum`` / ``voted``. ``positive_accuracy_ratio``: a lookup votes
+    positive where ``u_r < positive_accuracy_ratio * u_q`` (1: only a more accurate one, the paper).
     """
     ref_from_query = ref.from_view(query)
     query_from_ref = query.from_view(ref)
@@ -160,6 +162,7 @@ def _reference_votes(
         float(negative_sigma) ** 2,
         float(min_angle_deg),
         negatives_from_any,
+        float(positive_accuracy_ratio),
     )
     if not free_space:
         return
@@ -311,6 +314,7 @@ def consistency_voting(
     free_space_band: bool = False,
     hole_margin_px: float = 0.0,
     free_space_min_views: int = 1,
+    positive_accuracy_ratio: float = 1.0,
 ) -> VotingResult:
     """Stage 2 for one query view against the reference views ``refs``.
 
@@ -351,9 +355,14 @@ def consistency_voting(
         free_space_min_views: outside the query's own fattening band (of ``edge_jump_px``; without it, everywhere)
             a pixel's free-space votes count only where at least this many reference views cast one; inside the
             band one is enough. 1 = the paper.
+        positive_accuracy_ratio: a reference measurement may vote *positive* where ``u_r`` is below this many
+            times ``u_q`` (>= 1); 1 = the paper (only a more accurate one). Negative votes keep
+            ``negative_voters``.
     """
     n = query.valid.size
     mode = tolerance_code(tolerance)
+    if not positive_accuracy_ratio >= 1.0:
+        raise ValueError(f"positive_accuracy_ratio must be >= 1, got {positive_accuracy_ratio}")
     if negative_voters not in NEGATIVE_VOTERS:
         raise ValueError(f"negative_voters must be one of {NEGATIVE_VOTERS}, got {negative_voters!r}")
     if negative_voters == "any":
@@ -400,6 +409,7 @@ def consistency_voting(
             splat_bits=splat_bits,
             free_space_sum=fs_sum,
             free_space_voted=fs_voted,
+            positive_accuracy_ratio=positive_accuracy_ratio,
         )
         if fs_voted is not None:
             fs_views += fs_voted

@@ -184,6 +184,31 @@ def test_minimum_query_support_leaves_unsupported_positives_unknown() -> None:
     assert np.all(labels[half : half + 10, 70:90] == UNKNOWN)
 
 
+def test_positive_accuracy_ratio_lets_less_accurate_references_confirm() -> None:
+    query = view_at(0.0, radius=9.0)
+    far_ref = _supported(view_at(20.0, radius=14.0))  # farther from the wall: u_r 3-14 times u_q
+    lowest = float(np.min(far_ref.u[far_ref.valid]) / np.max(query.u[query.valid]))
+    highest = float(np.max(far_ref.u[far_ref.valid]) / np.min(query.u[query.valid]))
+    assert lowest > 2.0
+    shape = (CAMERA.height, CAMERA.width)
+    # A ratio under every u_r / u_q: the paper's rule, no vote.
+    short = consistency_voting(query, [far_ref], CAMERA, tolerance="sum", positive_accuracy_ratio=0.5 * lowest, **KW)
+    assert not short.voted.any()
+    # A ratio over every u_r / u_q: the correct wall is confirmed.
+    wide = consistency_voting(query, [far_ref], CAMERA, tolerance="sum", positive_accuracy_ratio=2.0 * highest, **KW)
+    assert np.all(wide.labels.reshape(shape)[CENTRE] == POSITIVE)
+    # One vote each, of at most the reference's largest weight support / sqrt(u_r).
+    weights = support_count(far_ref.support_bits)[far_ref.valid] / np.sqrt(far_ref.u[far_ref.valid])
+    assert np.all(wide.vote_sum.reshape(shape)[CENTRE] <= weights.max() * (1 + 1e-9))
+    # The relaxed confirmation does not relax contradiction: depth 1.5 times too near stays unvoted.
+    in_front = view_at(0.0, radius=9.0, scale=1.5)
+    near = consistency_voting(in_front, [far_ref], CAMERA, tolerance="sum", positive_accuracy_ratio=2.0 * highest, **KW)
+    assert not np.any(near.labels == NEGATIVE)
+    assert not np.any(near.labels.reshape(shape)[CENTRE] == POSITIVE)
+    with pytest.raises(ValueError, match="positive_accuracy_ratio"):
+        consistency_voting(query, [far_ref], CAMERA, tolerance="sum", positive_accuracy_ratio=0.9, **KW)
+
+
 def test_less_accurate_references_vote_negative_only_when_allowed() -> None:
     far_ref = [_supported(view_at(25.0, radius=10.0))]  # farther from the wall than the query: u_r > u_q
     in_front = view_at(0.0, radius=9.0, scale=1.5)  # 3 m in front of the wall, beyond the reference's 2 sigma
