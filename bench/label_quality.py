@@ -11,7 +11,10 @@ Renders ``--scenes`` x ``--seeds`` sequences (``--frames`` frames at
 * with ``--confidence``: per scene, the default forest (``ensemble``) trained
   on the self-generated labels of the first half of the seeds and on their
   ground truth, both evaluated on the second half (AUSC / optimal), and the
-  ratio self / ground truth (the paper's Table 1 comparison);
+  ratio self / ground truth (the paper's Table 1 comparison); with
+  ``--forest-seeds N`` both forests are trained with N forest seeds and the
+  figures are means, with the ratio per forest seed (the forest's own seed
+  moves one AUSC by a few percent);
 * with ``--oracles`` too: forests trained on the self labels mended with the
   ground truth (:data:`ORACLES`: the labelled pixels' true labels; only the
   positives mended; only the negatives; the wrong positives or all wrong
@@ -156,40 +159,60 @@ def _oracle_folders(row: dict[str, Any], work: Path) -> dict[str, Path]:
     return folders
 
 
-def _confidence(scene: str, rows: list[dict[str, Any]], work: Path, *, oracles: bool = False) -> dict[str, float]:
+def _confidence(
+    scene: str, rows: list[dict[str, Any]], work: Path, *, oracles: bool = False, forest_seeds: int = 1
+) -> dict[str, Any]:
     """Ensemble forests trained on self labels / ground truth of the first half of the seeds, scored on the rest.
 
-    With ``oracles`` also on each :data:`ORACLES` mending of the self labels.
+    With ``forest_seeds`` > 1 both forests are trained once per forest seed ``0 .. forest_seeds - 1`` (the
+    forest's ``random_state``; the sample draw stays the same) and the figures are means over them, with
+    the self / ground-truth ratio per forest seed: one forest's AUSC moves by a few percent with its seed
+    alone, which a label change must exceed to be seen. With ``oracles`` also on each :data:`ORACLES`
+    mending of the self labels (forest seed 0).
     """
     from selfcontra_ros.confidence.commands import evaluate_command, train_command
 
     ordered = sorted(rows, key=lambda r: r["seed"])
     half = len(ordered) // 2
     train, test = ordered[:half], ordered[half:]
-    if not train or not test:
+    if not train or not test or forest_seeds < 1:
         return {}
     folder = work / f"confidence_{scene}"
-    self_model, gt_model = folder / "self.npz", folder / "gt.npz"
-    train_command([(r["data"], r["labels"]) for r in train], "ensemble", self_model)
-    train_command([(r["data"], "gt") for r in train], "ensemble", gt_model)
-    models: list[Path | str] = [self_model, gt_model, "lrd"]
+    models: list[Path | str] = []
+    for k in range(forest_seeds):
+        suffix = "" if k == 0 else f"_f{k}"
+        forest = None if k == 0 else {"random_state": k}  # seed 0 is the package's forest as it is
+        self_model, gt_model = folder / f"self{suffix}.npz", folder / f"gt{suffix}.npz"
+        train_command([(r["data"], r["labels"]) for r in train], "ensemble", self_model, forest=forest)
+        train_command([(r["data"], "gt") for r in train], "ensemble", gt_model, forest=forest)
+        models += [self_model, gt_model]
+    models.append("lrd")
     if oracles:
         mended = [_oracle_folders(r, work) for r in train]
         for name in ORACLES:
             model = folder / f"{name}.npz"
             train_command([(r["data"], m[name]) for r, m in zip(train, mended, strict=True)], "ensemble", model)
             models.append(model)
-    # Results are keyed by the model files' stems: "self", "gt", "lrd" and the oracles' names.
+    # Results are keyed by the model files' stems: "self", "gt" (and "self_f1", "gt_f1", ...), "lrd" and the
+    # oracles' names.
     ratios: dict[str, list[float]] = {Path(str(m)).stem: [] for m in models}
     for r in test:
         results = evaluate_command(models, r["data"], folder / f"eval_s{r['seed']}")
         for key, values in ratios.items():
             values.append(float(results[key]["mean"]["ausc_ratio"]))
-    out = {f"ausc_ratio_{k}": float(np.mean(v)) for k, v in ratios.items() if v}
-    if out.get("ausc_ratio_gt"):
-        out["self_over_gt"] = out["ausc_ratio_self"] / out["ausc_ratio_gt"]
-    out["train_seeds"] = [r["seed"] for r in train]  # type: ignore[assignment]
-    out["test_seeds"] = [r["seed"] for r in test]  # type: ignore[assignment]
+    scores = {k: float(np.mean(v)) for k, v in ratios.items() if v}
+    suffixes = [""] + [f"_f{k}" for k in range(1, forest_seeds)]
+    by_seed = [scores[f"self{x}"] / scores[f"gt{x}"] for x in suffixes if scores.get(f"gt{x}")]
+    out: dict[str, Any] = {
+        "ausc_ratio_self": float(np.mean([scores[f"self{x}"] for x in suffixes])),
+        "ausc_ratio_gt": float(np.mean([scores[f"gt{x}"] for x in suffixes])),
+        **{f"ausc_ratio_{k}": v for k, v in scores.items() if not k.startswith(("self", "gt"))},
+    }
+    if by_seed:
+        out["self_over_gt"] = float(np.mean(by_seed))
+        out["self_over_gt_by_forest_seed"] = by_seed
+    out["train_seeds"] = [r["seed"] for r in train]
+    out["test_seeds"] = [r["seed"] for r in test]
     return out
 
 
@@ -236,6 +259,12 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="also (implies --confidence) train on the self labels mended with ground truth (ORACLES)",
     )
+    parser.add_argument(
+        "--forest-seeds",
+        type=int,
+        default=1,
+        help="with --confidence: train both forests with this many forest seeds and report means (default 1)",
+    )
     parser.add_argument("--threads", type=int, default=0)
     args = parser.parse_args(argv)
     limit_threads(args.threads)
@@ -278,7 +307,8 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"{scene:<7} {stat:>4} " + " ".join(f"{_pct(scenes[scene][k][stat]):>10}" for k, _, _ in FIGURES))
         if args.confidence or args.oracles:
             for scene in tqdm(args.scenes, desc="confidence", unit="scene", file=sys.stderr):
-                result = _confidence(scene, [r for r in rows if r["scene"] == scene], work, oracles=args.oracles)
+                mine = [r for r in rows if r["scene"] == scene]
+                result = _confidence(scene, mine, work, oracles=args.oracles, forest_seeds=args.forest_seeds)
                 scenes[scene]["confidence"] = result
                 if result:
                     print(
@@ -286,6 +316,12 @@ def main(argv: list[str] | None = None) -> int:
                         f"{result['ausc_ratio_self']:.3f}, ground truth {result['ausc_ratio_gt']:.3f}, "
                         f"ratio {result['self_over_gt']:.3f} (LRD {result['ausc_ratio_lrd']:.3f})"
                     )
+                    if args.forest_seeds > 1:
+                        spread = result["self_over_gt_by_forest_seed"]
+                        print(
+                            f"{scene}:   ratio per forest seed {' '.join(f'{v:.3f}' for v in spread)} "
+                            f"(min {min(spread):.3f}, max {max(spread):.3f})"
+                        )
                     for name in ORACLES if args.oracles else ():
                         print(f"{scene}:   trained on {name}: {result[f'ausc_ratio_{name}']:.3f}")
         if args.plot:
