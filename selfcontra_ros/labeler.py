@@ -305,8 +305,8 @@ class LabelerParams:
             negatives were), and the forest trained on the labels did not
             gain (label benchmark's ``--confidence``, self / ground-truth
             AUSC ratio, 1 -> 2: street 1.342 -> 1.363, orbit 2.689 -> 2.762,
-            room 1.038 -> 1.044; the forest's own seed moves these by about
-            3 %).
+            room 1.038 -> 1.044; over forest seeds 0-2 street's ratio at 1
+            spans 1.342-1.348, orbit's 2.602-2.689).
         stage2_positive_sigma: a reference votes positive in Stage 2 only
             within this many standard deviations (default 1.5; the paper:
             ``sigma_max``). Measured on four street frames (seed 1):
