@@ -29,6 +29,8 @@ that parameter sweeps render once. Examples::
 
     python bench/label_quality.py --seeds 1-10 --size 613x185 --cache /tmp/lq --confidence
     python bench/label_quality.py --scenes street --seeds 1-10 --set labeler.stage2_positive_sigma=1.0 --cache /tmp/lq
+    python bench/label_quality.py --seeds 11-20 --cache /tmp/lq --out /tmp/lqk          # labels kept in --out
+    python bench/label_quality.py --seeds 11-20 --cache /tmp/lq --labels-from /tmp/lqk --confidence  # no relabelling
 """
 
 from __future__ import annotations
@@ -102,6 +104,17 @@ def _sequence(cache: Path, scene: str, seed: int, frames: int, size: tuple[int, 
         write_sequence(partial, scene=scene, frames=frames, seed=seed, width=size[0], height=size[1])
         partial.rename(root)
     return root
+
+
+def _reused_metrics(labels: Path, data: Path) -> dict[str, Any]:
+    """The metrics of an earlier run's label folder, which must have labelled ``data`` (``--labels-from``)."""
+    path = labels / "metrics.json"
+    if not path.is_file():
+        raise SystemExit(f"--labels-from: no labels at {labels} (run the benchmark with --out first)")
+    metrics: dict[str, Any] = json.loads(path.read_text())
+    if Path(str(metrics.get("sequence", ""))).resolve() != data.resolve():
+        raise SystemExit(f"--labels-from: {labels} labelled {metrics.get('sequence')}, not {data}")
+    return metrics
 
 
 def _summary(values: list[float], larger_is_better: bool) -> dict[str, float]:
@@ -253,6 +266,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cache", default=None, help="folder for rendered sequences (kept between runs)")
     parser.add_argument("--out", default=None, help="folder for labels, models and the plot (default: temporary)")
     parser.add_argument("--plot", default=None, help="PNG of precision / accuracy vs query bad rate")
+    parser.add_argument(
+        "--labels-from",
+        default=None,
+        help="reuse the labels of an earlier run's --out folder instead of labelling (its --set is not re-applied)",
+    )
     parser.add_argument("--confidence", action="store_true", help="also train and score the Ensemble forest")
     parser.add_argument(
         "--oracles",
@@ -281,9 +299,13 @@ def main(argv: list[str] | None = None) -> int:
         jobs = [(scene, seed) for scene in args.scenes for seed in args.seeds]
         for scene, seed in tqdm(jobs, desc="label quality", unit="seq", file=sys.stderr):
             data = _sequence(cache, scene, seed, args.frames, args.size)
-            labels = work / "labels" / f"{scene}_s{seed}"
             tick = time.perf_counter()
-            metrics = label_sequence(data, labels, params_file=params)
+            if args.labels_from:
+                labels = Path(args.labels_from) / "labels" / f"{scene}_s{seed}"
+                metrics = _reused_metrics(labels, data)
+            else:
+                labels = work / "labels" / f"{scene}_s{seed}"
+                metrics = label_sequence(data, labels, params_file=params)
             mean = metrics["mean"]
             rows.append(
                 {
