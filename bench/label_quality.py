@@ -57,6 +57,7 @@ from selfcontra_ros.cli import parse_seeds, parse_size
 from selfcontra_ros.datasets import SCENES
 from selfcontra_ros.datasets.synthetic import write_sequence
 from selfcontra_ros.labels import NEGATIVE, POSITIVE, UNKNOWN
+from selfcontra_ros.reports import METRICS_FILE
 from selfcontra_ros.threads import limit_threads
 
 # The label benchmark's scenes: the defaults were tuned on their seeds 1-10 (a scene added to
@@ -107,13 +108,18 @@ def _sequence(cache: Path, scene: str, seed: int, frames: int, size: tuple[int, 
 
 
 def _reused_metrics(labels: Path, data: Path) -> dict[str, Any]:
-    """The metrics of an earlier run's label folder, which must have labelled ``data`` (``--labels-from``)."""
-    path = labels / "metrics.json"
+    """The metrics of an earlier run's label folder, which must have labelled ``data`` (``--labels-from``).
+
+    The file stores a NaN figure (e.g. a sequence without negatives) as null: it is read back as NaN, as
+    :func:`~selfcontra_ros.pipeline.label_sequence` returns it.
+    """
+    path = labels / METRICS_FILE
     if not path.is_file():
         raise SystemExit(f"--labels-from: no labels at {labels} (run the benchmark with --out first)")
     metrics: dict[str, Any] = json.loads(path.read_text())
     if Path(str(metrics.get("sequence", ""))).resolve() != data.resolve():
         raise SystemExit(f"--labels-from: {labels} labelled {metrics.get('sequence')}, not {data}")
+    metrics["mean"] = {k: math.nan if v is None else v for k, v in metrics.get("mean", {}).items()}
     return metrics
 
 
