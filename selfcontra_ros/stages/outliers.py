@@ -183,6 +183,7 @@ def outlier_negatives(
     reading: str,
     refs: list[View] | None = None,
     min_free_space_views: int = 0,
+    min_depth_ratio: float = 1.0,
 ) -> NDArray[np.bool_]:
     """Pending query pixels (flat) whose depth lies in front of the augmented depth by more than the margin.
 
@@ -190,7 +191,9 @@ def outlier_negatives(
     :func:`augmented_margin` of ``u_aug``, the augmented point's uncertainty as seen by Q's pair alone.
     With ``min_free_space_views > 0`` (a deviation, see ``LabelerParams.stage3_min_free_space_views``)
     such a pixel stays negative only where at least that many of ``refs`` see through its point
-    (:func:`free_space_witnesses`).
+    (:func:`free_space_witnesses`). With ``min_depth_ratio > 1`` (a deviation, see
+    ``LabelerParams.stage3_min_depth_ratio``) it must also lie in front by that factor:
+    ``z_aug >= min_depth_ratio * z_q``.
     """
     negative = kernels.outlier_negatives_kernel(
         np.ascontiguousarray(query.points[:, 2]),
@@ -206,6 +209,11 @@ def outlier_negatives(
         float(sigma_max),
         _reading(reading),
     )
+    if min_depth_ratio > 1:
+        pixels = np.flatnonzero(negative)
+        query_depth = query.points[pixels, 2].astype(np.float64)
+        agreed_depth = np.asarray(z_aug, dtype=np.float64).reshape(-1)[pixels]
+        negative[pixels[agreed_depth < min_depth_ratio * query_depth]] = False
     if min_free_space_views > 0:
         if refs is None:
             raise ValueError("outlier_negatives: min_free_space_views > 0 needs the references (refs)")

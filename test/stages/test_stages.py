@@ -403,6 +403,28 @@ def test_stage3_negative_needs_a_view_that_sees_through_the_query_point() -> Non
     assert witnessed[paper & ~sel].sum() > 0.5 * paper[~sel].sum()
 
 
+def test_stage3_depth_ratio_keeps_only_points_far_enough_in_front() -> None:
+    refs = [view_at(a, index=i) for i, a in enumerate((-24.0, -12.0, 12.0, 24.0))]
+    query = view_at(0.0, scale=1.6)  # 1.6 times the wall's disparity: the wall lies 1.6 times farther
+    pending = query.valid.copy()
+    z_aug = augmented_depth(query, refs, pending, CAMERA, reading="std", min_positive_votes=3, **KW)
+    sel = np.zeros((CAMERA.height, CAMERA.width), dtype=bool)
+    sel[CENTRE] = True
+    sel = sel.ravel()
+    np.testing.assert_allclose(z_aug[sel] / query.points[sel, 2], 1.6, rtol=0.02)
+    paper = outlier_negatives(query, z_aug, pending, CAMERA, reading="std", **KW)
+    assert paper[sel].all()
+    same = outlier_negatives(query, z_aug, pending, CAMERA, reading="std", min_depth_ratio=1.0, **KW)
+    np.testing.assert_array_equal(same, paper)
+    kept = outlier_negatives(query, z_aug, pending, CAMERA, reading="std", min_depth_ratio=1.5, **KW)
+    assert kept[sel].all()
+    dropped = outlier_negatives(query, z_aug, pending, CAMERA, reading="std", min_depth_ratio=1.7, **KW)
+    assert not dropped[sel].any()
+    far_enough = np.zeros(paper.shape, dtype=bool)
+    far_enough[paper] = z_aug[paper] >= 1.7 * query.points[paper, 2].astype(np.float64)
+    np.testing.assert_array_equal(dropped, far_enough)
+
+
 def test_stage3_tolerance_readings() -> None:
     u_a, u_b = np.array([0.04]), np.array([0.09])
     np.testing.assert_allclose(candidate_tolerance(u_a, u_b, 2.0, "std"), [2.0 * (0.2 + 0.3)])
