@@ -112,6 +112,9 @@ def test_invalid_values_and_malformed_files(tmp_path: Path) -> None:
     path = _write(tmp_path / "bad4.yaml", {"labeler": {"stage2_positive_accuracy_ratio": 0.5}})
     with pytest.raises(SelfContraError, match="stage2_positive_accuracy_ratio"):
         load_params(path)
+    path = _write(tmp_path / "bad5.yaml", {"labeler": {"stage3_min_depth_ratio": 0.5}})
+    with pytest.raises(SelfContraError, match="stage3_min_depth_ratio"):
+        load_params(path)
     with pytest.raises(SelfContraError, match="cannot read"):
         load_params(tmp_path / "missing.yaml")
     (tmp_path / "node.yaml").write_text("talker:\n  ros__parameters: {}\n")

@@ -116,6 +116,20 @@ def test_patch_in_front_of_surface_is_negative(arc: tuple[list[np.ndarray], list
     assert not np.any((result.labels == NEGATIVE) & outside & _inside_right_image(bad[MIDDLE]))
 
 
+def test_stage3_depth_ratio_reaches_the_labeler(arc: tuple[list[np.ndarray], list[np.ndarray]]) -> None:
+    disparities, poses = arc
+    bad = [d.copy() for d in disparities]
+    bad[MIDDLE][40:70, 60:100] *= WALL_Z / 6.5  # the wall lies 1.54 times farther than the patch
+    core = (slice(45, 65), slice(65, 95))
+    kept = _middle_result(bad, poses, dataclasses.replace(PARAMS, stage3_min_depth_ratio=1.3))
+    assert np.mean(kept.labels[core] == NEGATIVE) > 0.95
+    stage3 = (kept.labels[core] == NEGATIVE) & (kept.stage2_labels[core] != NEGATIVE)
+    assert stage3.mean() > 0.2  # part of the patch is Stage 3's to call
+    dropped = _middle_result(bad, poses, dataclasses.replace(PARAMS, stage3_min_depth_ratio=1.7))
+    np.testing.assert_array_equal(dropped.labels[core] == NEGATIVE, dropped.stage2_labels[core] == NEGATIVE)
+    np.testing.assert_array_equal(dropped.stage2_labels, kept.stage2_labels)
+
+
 def test_patch_behind_surface_is_negative(arc: tuple[list[np.ndarray], list[np.ndarray]]) -> None:
     disparities, poses = arc
     bad = [d.copy() for d in disparities]

@@ -405,24 +405,28 @@ def test_stage3_negative_needs_a_view_that_sees_through_the_query_point() -> Non
 
 def test_stage3_depth_ratio_keeps_only_points_far_enough_in_front() -> None:
     refs = [view_at(a, index=i) for i, a in enumerate((-24.0, -12.0, 12.0, 24.0))]
-    query = view_at(0.0, scale=1.6)  # 1.6 times the wall's disparity: the wall lies 1.6 times farther
+    pose = orbit_pose(0.0)
+    # The query's left half 1.3 times the wall's disparity, its right half 1.6 times: the wall lies that
+    # many times farther than the query point.
+    scale = np.where(np.arange(CAMERA.width)[None, :] < CAMERA.width // 2, 1.3, 1.6)
+    query = make_view(CAMERA, wall_disparity(pose) * scale, pose, index=9, key=9, stamp=0.0, sigma_px=1.0)
     pending = query.valid.copy()
     z_aug = augmented_depth(query, refs, pending, CAMERA, reading="std", min_positive_votes=3, **KW)
-    sel = np.zeros((CAMERA.height, CAMERA.width), dtype=bool)
-    sel[CENTRE] = True
-    sel = sel.ravel()
-    np.testing.assert_allclose(z_aug[sel] / query.points[sel, 2], 1.6, rtol=0.02)
+    centre = np.zeros((CAMERA.height, CAMERA.width), dtype=bool)
+    centre[CENTRE] = True
+    near = (centre & (scale == 1.6)).ravel()
+    less = (centre & (scale == 1.3)).ravel()
+    assert near.any() and less.any()
+    np.testing.assert_allclose(z_aug[near] / query.points[near, 2], 1.6, rtol=0.02)
+    np.testing.assert_allclose(z_aug[less] / query.points[less, 2], 1.3, rtol=0.02)
     paper = outlier_negatives(query, z_aug, pending, CAMERA, reading="std", **KW)
-    assert paper[sel].all()
+    assert paper[near].all() and paper[less].all()
     same = outlier_negatives(query, z_aug, pending, CAMERA, reading="std", min_depth_ratio=1.0, **KW)
     np.testing.assert_array_equal(same, paper)
-    kept = outlier_negatives(query, z_aug, pending, CAMERA, reading="std", min_depth_ratio=1.5, **KW)
-    assert kept[sel].all()
-    dropped = outlier_negatives(query, z_aug, pending, CAMERA, reading="std", min_depth_ratio=1.7, **KW)
-    assert not dropped[sel].any()
-    far_enough = np.zeros(paper.shape, dtype=bool)
-    far_enough[paper] = z_aug[paper] >= 1.7 * query.points[paper, 2].astype(np.float64)
-    np.testing.assert_array_equal(dropped, far_enough)
+    split = outlier_negatives(query, z_aug, pending, CAMERA, reading="std", min_depth_ratio=1.45, **KW)
+    assert split[near].all() and not split[less].any()
+    assert not (split & ~paper).any()  # the ratio only takes negatives away
+    assert not outlier_negatives(query, z_aug, pending, CAMERA, reading="std", min_depth_ratio=1.7, **KW)[near].any()
 
 
 def test_stage3_tolerance_readings() -> None:
