@@ -53,6 +53,7 @@ import yaml
 from numpy.typing import NDArray
 from tqdm import tqdm
 
+from selfcontra_ros.batch.label import COMPLETE
 from selfcontra_ros.cli import parse_seeds, parse_size
 from selfcontra_ros.datasets import SCENES
 from selfcontra_ros.datasets.synthetic import write_sequence
@@ -108,7 +109,7 @@ def _sequence(cache: Path, scene: str, seed: int, frames: int, size: tuple[int, 
 
 
 def _reused_metrics(labels: Path, data: Path) -> dict[str, Any]:
-    """The metrics of an earlier run's label folder, which must have labelled ``data`` (``--labels-from``).
+    """The metrics of an earlier run's complete label folder, which must have labelled ``data`` (``--labels-from``).
 
     The file stores a NaN figure (e.g. a sequence without negatives) as null: it is read back as NaN, as
     :func:`~selfcontra_ros.pipeline.label_sequence` returns it.
@@ -119,6 +120,8 @@ def _reused_metrics(labels: Path, data: Path) -> dict[str, Any]:
     metrics: dict[str, Any] = json.loads(path.read_text())
     if Path(str(metrics.get("sequence", ""))).resolve() != data.resolve():
         raise SystemExit(f"--labels-from: {labels} labelled {metrics.get('sequence')}, not {data}")
+    if metrics.get("status") != COMPLETE:
+        raise SystemExit(f"--labels-from: {labels} is {metrics.get('status')!r}, not {COMPLETE!r} (relabel it)")
     metrics["mean"] = {k: math.nan if v is None else v for k, v in metrics.get("mean", {}).items()}
     return metrics
 
