@@ -181,6 +181,11 @@ def _build(sections: Mapping[str, Mapping[str, Any]], where: str) -> tuple[Match
         labeler = LabelerParams.from_dict(
             _coerce(LabelerParams, sections.get("labeler", {}), f"{where}, section 'labeler'")
         )
+        if matcher.algorithm == "external" and labeler.cross_check_matcher != "none":
+            raise ValueError(
+                "labeler.cross_check_matcher needs the stereo images, which matcher.algorithm 'external' "
+                "does not give; set it to 'none'"
+            )
     return matcher, labeler
 
 

@@ -32,6 +32,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from selfcontra_ros.confidence.online import ConfidenceFrame, OnlineConfidence, filter_depth
+from selfcontra_ros.cross_check import CrossCheck
 from selfcontra_ros.errors import SelfContraError
 from selfcontra_ros.geometry import StereoCamera
 from selfcontra_ros.labeler import Labeler, LabelerParams, LabelResult
@@ -105,6 +106,15 @@ class LabelingSession:
             None if self.matcher_params.algorithm == "external" else make_matcher(self.matcher_params)
         )
         self.labeler = Labeler(camera, self.labeler_params)
+        #: the second matcher of ``labeler_params.cross_check_matcher`` (None when ``none``).
+        self.cross_check: CrossCheck | None = None
+        if self.labeler_params.cross_check_matcher != "none":
+            if self._matcher is None:
+                raise SelfContraError(
+                    "labeler.cross_check_matcher needs the stereo images, which matcher.algorithm 'external' "
+                    "does not give; set it to 'none'"
+                )
+            self.cross_check = CrossCheck(camera, self.matcher_params, self.labeler_params)
         self.confidence = confidence
         # Frames of the views in the labeler's window, until labelled: keyed by (key, stamp).
         self._frames: dict[tuple[Hashable, float], ConfidenceFrame] = {}
@@ -199,6 +209,7 @@ class LabelingSession:
         key: Hashable = None,
         frame: ConfidenceFrame | None = None,
         image: NDArray[np.uint8] | None = None,
+        right: NDArray[np.uint8] | None = None,
     ) -> tuple[list[LabelResult], bool]:
         """Add one view to the labeler; returns ``(ready label results, skipped)``.
 
@@ -206,14 +217,27 @@ class LabelingSession:
         little motion since the last kept view); such a view is never labelled.
         With a confidence attached and the view's ``frame`` given, the frame
         waits here until the view is labelled, then frame and labels go to
-        :meth:`OnlineConfidence.add_labelled`.
+        :meth:`OnlineConfidence.add_labelled`. With a cross check
+        (``labeler_params.cross_check_matcher``) the stereo pair comes from
+        ``frame`` or from ``image`` and ``right``.
+
+        Raises:
+            SelfContraError: as :meth:`Labeler.add_view`; with a cross check, when the stereo pair is missing.
         """
         skipped_before = self.labeler.skipped_views
         if self.confidence is not None and frame is not None:
             self._frames[(key, stamp)] = frame
         if image is None and frame is not None:
             image = frame.left
+        if right is None and frame is not None:
+            right = frame.right
+        if self.cross_check is not None:
+            if image is None or right is None:
+                raise SelfContraError("labeler.cross_check_matcher needs the view's left and right images")
+            self.cross_check.add_view(image, right, disparity, pose, stamp=stamp, key=key)
         results = self.labeler.add_view(disparity, pose, stamp=stamp, key=key, image=image)
+        if self.cross_check is not None:
+            results = [self.cross_check.apply(result) for result in results]
         skipped = self.labeler.skipped_views > skipped_before
         if skipped:
             self._frames.pop((key, stamp), None)
@@ -249,7 +273,7 @@ class LabelingSession:
         """
         if self.confidence is None:
             disparity, depth = self.match(left, right, external_disparity=external_disparity)
-            labelled, skipped = self.label(disparity, pose, stamp=stamp, key=key, image=left)
+            labelled, skipped = self.label(disparity, pose, stamp=stamp, key=key, image=left, right=right)
             return FrameOutput(disparity=disparity, depth=depth, labelled=labelled, skipped=skipped)
         matched = self.match_frame(left, right, external_disparity=external_disparity)
         confidence, filtered, source = self.confidence_of(matched.frame)
@@ -266,7 +290,12 @@ class LabelingSession:
 
     def flush(self) -> list[LabelResult]:
         """End of stream: label every view still waiting, with the views available (and learn from them)."""
+        if self.cross_check is not None:
+            self.cross_check.flush()
         results = self.labeler.flush()
+        if self.cross_check is not None:
+            results = [self.cross_check.apply(result) for result in results]
+            self.cross_check.clear()
         self._learn(results)
         self._frames.clear()
         return results

@@ -115,6 +115,17 @@ def test_invalid_values_and_malformed_files(tmp_path: Path) -> None:
     path = _write(tmp_path / "bad5.yaml", {"labeler": {"stage3_min_depth_ratio": 0.5}})
     with pytest.raises(SelfContraError, match="stage3_min_depth_ratio"):
         load_params(path)
+    path = _write(tmp_path / "bad6.yaml", {"labeler": {"cross_check_matcher": "sgbm"}})
+    with pytest.raises(SelfContraError, match="cross_check_matcher"):
+        load_params(path)
+    path = _write(tmp_path / "bad7.yaml", {"labeler": {"cross_check_min_difference_px": 0}})
+    with pytest.raises(SelfContraError, match="cross_check_min_difference_px"):
+        load_params(path)
+    path = _write(
+        tmp_path / "bad8.yaml", {"matcher": {"algorithm": "external"}, "labeler": {"cross_check_matcher": "census_sgm"}}
+    )
+    with pytest.raises(SelfContraError, match="stereo images"):
+        load_params(path)
     with pytest.raises(SelfContraError, match="cannot read"):
         load_params(tmp_path / "missing.yaml")
     (tmp_path / "node.yaml").write_text("talker:\n  ros__parameters: {}\n")
