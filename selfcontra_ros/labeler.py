@@ -414,8 +414,10 @@ class LabelerParams:
             negatives on errors every view of the query algorithm repeats,
             which the forest lacks most. It needs the stereo images (not
             with ``matcher.algorithm: external``) and costs a census SGM run
-            and a second labeling per view, so it is off by default
-            (figures in the README).
+            and a second labeling per view, and held out at 1226x370 the
+            forest did not gain (orbit seeds 21-30: ratio 1.968 -> 1.939,
+            bad recall 7.2 -> 12.0 %; figures in the README), so it is off
+            by default.
         cross_check_min_difference_px: pixels; see ``cross_check_matcher``.
             Default 4. Tuning seeds 1-10 at 613x185, 3 / 4 / 5 / 7 px (share
             of the new negatives on wrong query depth; Ensemble self /
