@@ -28,6 +28,7 @@ from typing import Any
 import yaml
 
 from selfcontra_ros.confidence.online import ConfidenceParams
+from selfcontra_ros.cross_check import check_supported
 from selfcontra_ros.errors import SelfContraError
 from selfcontra_ros.labeler import LabelerParams
 from selfcontra_ros.matching.base import MatcherParams
@@ -181,11 +182,7 @@ def _build(sections: Mapping[str, Mapping[str, Any]], where: str) -> tuple[Match
         labeler = LabelerParams.from_dict(
             _coerce(LabelerParams, sections.get("labeler", {}), f"{where}, section 'labeler'")
         )
-        if matcher.algorithm == "external" and labeler.cross_check_matcher != "none":
-            raise ValueError(
-                "labeler.cross_check_matcher needs the stereo images, which matcher.algorithm 'external' "
-                "does not give; set it to 'none'"
-            )
+        check_supported(matcher, labeler)
     return matcher, labeler
 
 

@@ -48,12 +48,26 @@ from collections.abc import Hashable
 import numpy as np
 from numpy.typing import NDArray
 
+from selfcontra_ros.errors import SelfContraError
 from selfcontra_ros.geometry import StereoCamera
 from selfcontra_ros.labeler import CROSS_CHECK_MATCHERS, Labeler, LabelerParams, LabelResult
 from selfcontra_ros.labels import NEGATIVE, POSITIVE, UNKNOWN
 from selfcontra_ros.matching.base import MatcherParams, make_matcher
 
-__all__ = ["CROSS_CHECK_MATCHERS", "CrossCheck", "cross_negatives"]
+__all__ = ["CROSS_CHECK_MATCHERS", "CrossCheck", "check_supported", "cross_negatives"]
+
+
+def check_supported(matcher_params: MatcherParams, labeler_params: LabelerParams) -> None:
+    """Refuse a cross check the query algorithm cannot feed (the parameter files and every session call it).
+
+    Raises:
+        SelfContraError: the cross check is on and ``matcher.algorithm`` is ``external`` (no stereo images).
+    """
+    if matcher_params.algorithm == "external" and labeler_params.cross_check_matcher != "none":
+        raise SelfContraError(
+            "labeler.cross_check_matcher needs the stereo images, which matcher.algorithm 'external' "
+            "does not give; set it to 'none'"
+        )
 
 
 def cross_negatives(

@@ -32,7 +32,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from selfcontra_ros.confidence.online import ConfidenceFrame, OnlineConfidence, filter_depth
-from selfcontra_ros.cross_check import CrossCheck
+from selfcontra_ros.cross_check import CrossCheck, check_supported
 from selfcontra_ros.errors import SelfContraError
 from selfcontra_ros.geometry import StereoCamera
 from selfcontra_ros.labeler import Labeler, LabelerParams, LabelResult
@@ -109,11 +109,7 @@ class LabelingSession:
         #: the second matcher of ``labeler_params.cross_check_matcher`` (None when ``none``).
         self.cross_check: CrossCheck | None = None
         if self.labeler_params.cross_check_matcher != "none":
-            if self._matcher is None:
-                raise SelfContraError(
-                    "labeler.cross_check_matcher needs the stereo images, which matcher.algorithm 'external' "
-                    "does not give; set it to 'none'"
-                )
+            check_supported(self.matcher_params, self.labeler_params)
             self.cross_check = CrossCheck(camera, self.matcher_params, self.labeler_params)
         self.confidence = confidence
         # Frames of the views in the labeler's window, until labelled: keyed by (key, stamp).

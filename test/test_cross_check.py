@@ -16,6 +16,7 @@ from selfcontra_ros.errors import SelfContraError
 from selfcontra_ros.evaluation.metrics import ground_truth_labels
 from selfcontra_ros.labeler import LabelerParams
 from selfcontra_ros.labels import NEGATIVE, POSITIVE, UNKNOWN
+from selfcontra_ros.matching.base import MatcherParams
 from selfcontra_ros.pipeline import label_sequence
 from selfcontra_ros.session import LabelingSession
 
@@ -86,6 +87,8 @@ def test_cross_check_needs_both_images(orbit: Path) -> None:
     disparity, _ = session.match(frame.left, frame.right)
     with pytest.raises(SelfContraError, match="right images"):
         session.label(disparity, frame.pose, stamp=0.0, key=0, image=frame.left)
+    with pytest.raises(SelfContraError, match="stereo images"):
+        LabelingSession(sequence.camera, MatcherParams(algorithm="external"), session.labeler_params)
 
 
 def test_node_path_with_the_frame_gives_the_offline_labels(orbit: Path) -> None:
