@@ -243,6 +243,11 @@ class VOParams:
             167. KITTI 06 1.48 -> 1.44 %, bad reliable 6 -> 9; street
             seeds 1-10 0.23 (0.35) -> 0.26 (0.48) %, orbit 0.33 (0.56) ->
             0.31 (0.54) %.
+        untrusted_override: when the constant-velocity prediction comes from
+            a frame that failed a check (``weak_scale``), two consecutive
+            frames whose largest rigid groups are implausible against it but
+            agree with each other overrule it (the second is measured; see
+            :meth:`StereoOdometry._confirms_untrusted_override`).
         max_velocity_change_m: a measured step whose translation differs from
             the last reliable step's by more than this per frame between them
             (metres; 0.1 is 10 m/s^2 at 10 Hz) is ``weak_scale``, unless the
@@ -297,6 +302,7 @@ class VOParams:
     length_floor_pct: float = 1.0
     weak_length_factor: float = 8.0
     follow_unmatched: bool = True
+    untrusted_override: bool = True
 
     def __post_init__(self) -> None:
         positive = ("features", "grid_rows", "grid_cols", "lk_window", "ransac_iterations", "min_inliers")
@@ -453,6 +459,8 @@ class StereoOdometry:
         self._reliable_step: F64 | None = None  # translation of the last reliable measured step, metres
         self._reliable_index = 0  # its frame
         self._jump_candidate: F64 | None = None  # the last step flagged by _check_velocity_change
+        self._velocity_trusted = False  # the velocity comes from a frame that passed every check
+        self._implausible_candidate: F64 | None = None  # T_ref_cur per frame of the last implausible frame's group
         #: Left pixel positions (N, 2) of the last frame's inliers (empty when it got no pose): diagnostics.
         self.last_inliers: F64 = np.zeros((0, 2))
         #: Disparities (N,) of the last frame's inliers in the new frame, pixels: diagnostics.
@@ -960,10 +968,17 @@ class StereoOdometry:
             still = everything[self._static_under_prediction(ref, cur, ri[everything], ci[everything], predicted)]
             everything = still if len(still) >= p.min_inliers else everything
         t_cur_ref, keep = self._pnp_ransac(ref.points[ri], cur_uv, predicted, velocity is not None, everything)
-        if velocity is not None and len(keep) >= p.min_inliers and not self._plausible(t_cur_ref, predicted):
+        candidate, self._implausible_candidate = self._implausible_candidate, None
+        if (
+            velocity is not None
+            and len(keep) >= p.min_inliers
+            and not self._plausible(t_cur_ref, predicted)
+            and not self._confirms_untrusted_override(t_cur_ref, candidate, gap)
+        ):
             # The largest rigid group moves unlike the camera can (a vehicle filling the view, say): the
             # static scene is the largest group among the rest, if it moves as the camera can.
             first, largest = len(keep), (t_cur_ref, keep)
+            self._implausible_candidate = _step_of(invert_pose(t_cur_ref), gap)
             t_cur_ref, keep = self._pnp_ransac(ref.points[ri], cur_uv, predicted, True, np.setdiff1d(everything, keep))
             flow = np.linalg.norm(cur_uv[largest[1]] - ref.uv[ri[largest[1]]], axis=1)
             if (len(keep) < p.min_inliers or not self._plausible(t_cur_ref, predicted)) and (
@@ -1020,6 +1035,7 @@ class StereoOdometry:
         quality = FrameQuality(status=status, reliable=True, reference=ref_index, **common, **extra)  # type: ignore[arg-type]
         result = self._record(pose, quality)
         self._velocity = np.linalg.matrix_power(t_ref_cur, 1) if gap == 1 else _step_of(t_ref_cur, gap)
+        self._velocity_trusted = True  # until the checks below say otherwise
         if status == "ok" or self._reference is None:
             self._reference = (index, gl, cur)
         if status == "ok":
@@ -1032,6 +1048,7 @@ class StereoOdometry:
             if quality.reliable:
                 quality = self._check_velocity_change(index, quality)
             self.qualities[index] = quality
+            self._velocity_trusted = quality.reliable
             if p.interpolate_speed:
                 self._step_prior(index, quality.reliable)
             return OdometryResult(self.poses[index].copy(), quality)
@@ -1202,6 +1219,21 @@ class StereoOdometry:
         t_cur_ref[:3, :3] = cv2.Rodrigues(rvec)[0]
         t_cur_ref[:3, 3] = tvec.ravel()
         return t_cur_ref, subset[inliers.ravel()]
+
+    def _confirms_untrusted_override(self, t_cur_ref: F64, candidate: F64 | None, gap: int) -> bool:
+        """Whether an implausible motion overrules the constant-velocity prediction: the prediction comes
+        from a frame that failed a check (``weak_scale``, never confirmed), and the last implausible
+        frame's largest group moved as this one does (``candidate``, per frame; ``untrusted_override``).
+
+        Without it a wrong first step locks the odometry: on highway seed 3
+        (``fast_threshold`` 5) frame 1 measured 0.26 m on a truck moving
+        with the camera (true 2.53 m, flagged ``weak_scale``), and every
+        later frame's static scene, 2.6 m, was ``implausible`` against it:
+        29 of 30 frames unreliable and the path 91 % short.
+        """
+        if not self.params.untrusted_override or self._velocity_trusted or candidate is None:
+            return False
+        return self._plausible(t_cur_ref, np.linalg.matrix_power(candidate, gap))
 
     def _plausible(self, t_cur_ref: F64, predicted: F64) -> bool:
         """Whether motion ``T_cur_ref`` is within what a camera can change from the prediction ``T_ref_cur``."""
