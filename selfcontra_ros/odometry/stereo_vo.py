@@ -134,7 +134,7 @@ class VOParams:
             several frames: its lengths are 15-30 % of the truth, and their
             noise, relative to those lengths, is small in metres (highway
             seed 78: 6.98 % -> 1.00 %). Reliable steps are never left out.
-            It did not fire on highway seeds 1-30 or on street and orbit.
+            It changed nothing on highway seeds 1-30, street, orbit or KITTI 06.
         ransac_threshold_px: PnP RANSAC inlier threshold.
         ransac_iterations: PnP RANSAC iterations.
         min_features: fewer left features than this: ``few_features``.
