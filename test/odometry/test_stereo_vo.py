@@ -113,8 +113,8 @@ def _road_pair(seed: int) -> tuple[np.ndarray, np.ndarray, StereoCamera]:
 @pytest.mark.parametrize("seed", [0, 1])
 def test_a_wide_short_stereo_window_measures_a_road_plane_closer(seed: int) -> None:
     """A square window averages the disparity over rows that differ by +-1.5 px on a road; the default
-    stereo window, short and wide, stays nearer the feature's own row (measured medians: 0.43 px with
-    11x11, 0.21 px with 19x7)."""
+    stereo window, wider than tall, stays nearer the feature's own row (measured medians: 0.42-0.45 px
+    with 11x11, 0.27-0.29 px with 19x9)."""
     left, right, camera = _road_pair(seed)
     errors = {}
     for window in [(11, 11), VOParams().stereo_window]:
@@ -122,7 +122,7 @@ def test_a_wide_short_stereo_window_measures_a_road_plane_closer(seed: int) -> N
         assert len(features.uv) > 500
         errors[window] = np.median(np.abs(features.disparity - (4.0 + 0.3 * features.uv[:, 1])))
     square, default = errors[(11, 11)], errors[VOParams().stereo_window]
-    assert default < 0.3 and default < 0.6 * square, errors
+    assert default < 0.35 and default < 0.75 * square, errors
 
 
 def test_stereo_window_is_checked() -> None:
