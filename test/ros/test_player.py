@@ -46,15 +46,14 @@ def _recorded(bag_path: Path) -> dict[str, list[tuple[int, bytes]]]:
 
 
 class _Recorder:
-    """Raw subscriptions on the given topics; keeps ``(arrival monotonic s, bytes)`` per topic, and in ``sent``
-    the publisher's send time of each message (DDS source timestamp, s): what the player's pacing is judged
-    on, since a test process starved of CPU can take messages sent 0.1 s apart in one burst."""
+    """Raw subscriptions on the given topics; keeps ``(send time s, bytes)`` per topic. The send time is the
+    publisher's (DDS source timestamp), what the player's pacing is judged on: a test process starved of CPU
+    can take messages sent 0.1 s apart in one burst, so its own arrival times would not show the pacing."""
 
     def __init__(self, node: Any, subscriptions: dict[str, str]) -> None:
         from rclpy.qos import QoSProfile, ReliabilityPolicy
 
         self.received: dict[str, list[tuple[float, bytes]]] = {name: [] for name in subscriptions}
-        self.sent: dict[str, list[float]] = {name: [] for name in subscriptions}
         qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
         self.subscriptions = []
         for name, msgtype in subscriptions.items():
@@ -64,8 +63,7 @@ class _Recorder:
 
     def _callback(self, name: str) -> Callable[[bytes, dict[str, Any]], None]:
         def store(data: bytes, info: dict[str, Any]) -> None:  # two arguments: rclpy passes the message info
-            self.received[name].append((time.monotonic(), bytes(data)))
-            self.sent[name].append(info["source_timestamp"] / 1e9)
+            self.received[name].append((info["source_timestamp"] / 1e9, bytes(data)))
 
         return store
 
@@ -137,12 +135,12 @@ def test_player_replays_every_message_bit_exact_with_recorded_timing(
         png = cv2.imread(str(seq_dir / "image_0" / f"{k:06d}.png"), cv2.IMREAD_UNCHANGED)
         assert np.array_equal(image_to_numpy(msg), png)
 
-    arrivals = np.array(recorder.sent[REMAPPED_LEFT])
+    sent = np.array([t for t, _ in recorder.received[REMAPPED_LEFT]])
     expected = (recorded[LEFT][-1][0] - recorded[LEFT][0][0]) / 1e9 / rate  # 0.2 s: 4 periods of 0.1 s at rate 2
-    span = arrivals[-1] - arrivals[0]
+    span = sent[-1] - sent[0]
     assert abs(span - expected) < 0.1, f"frames spread over {span:.3f} s, expected {expected:.3f} s"
     # Paced, not sent at once: the typical interval of the send times (one late send makes the next one short).
-    intervals = np.diff(arrivals)
+    intervals = np.diff(sent)
     assert 0.03 < np.median(intervals) < 0.08, f"intervals {intervals} (expected about 0.05 s)"
     assert "done: published 30 messages" in player.stderr() + player.stdout()
 
@@ -186,10 +184,10 @@ def test_player_start_offset_clock_and_loop_until_sigint(
     lefts = [deserialize_message(data, Image) for _, data in recorder.received[LEFT]]
     frame_stamps = [stamp for stamp, _ in recorded[LEFT][2:]]
     assert [stamp_to_nanoseconds(msg.header.stamp) for msg in lefts[:6]] == frame_stamps + frame_stamps
-    arrivals = np.array(recorder.sent[LEFT])
-    first_pass = arrivals[2] - arrivals[0]
+    sent = np.array([t for t, _ in recorder.received[LEFT]])
+    first_pass = sent[2] - sent[0]
     assert abs(first_pass - 0.2) < 0.1, f"frames 2-4 spread over {first_pass:.3f} s at rate 1, expected 0.2 s"
-    seam = arrivals[3] - arrivals[2]  # the next pass follows at the bag's own pace: one frame period
+    seam = sent[3] - sent[2]  # the next pass follows at the bag's own pace: one frame period
     assert 0.03 < seam < 0.3, f"{seam:.3f} s between the passes, expected about 0.1 s"
 
     clock_stamps = [
