@@ -30,7 +30,7 @@ import logging
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
@@ -66,17 +66,25 @@ __all__ = [
 ]
 
 _LOG = logging.getLogger(__name__)
+_Triple = tuple[float, NDArray[np.uint8], NDArray[np.uint8]]
 _NS_PER_S = 1_000_000_000
 _LEFT, _RIGHT = "left", "right"
 
 
 def estimate_poses(
     camera: StereoCamera,
-    frames: Iterable[tuple[float, NDArray[np.uint8], NDArray[np.uint8]]],
+    frames: Iterable[_Triple] | Callable[[], Iterable[_Triple]],
     *,
     params: VOParams | None = None,
 ) -> tuple[NDArray[np.float64], list[FrameQuality]]:
     """Run the odometry over ``(stamp, left, right)`` triples.
+
+    ``frames`` may be a function that returns the triples afresh at each
+    call. Then, when the odometry's disparity offset estimate
+    (``VOParams.estimate_disparity_offset``) ended away from
+    ``VOParams.disparity_offset_px``, the sequence is run a second time with
+    the estimate applied from the first frame on (the first pass applies it
+    only once enough windows agree) and estimation off.
 
     Returns:
         (N, 4, 4) poses ``T_world_left`` (metres, after the windowed
@@ -87,14 +95,28 @@ def estimate_poses(
     Raises:
         OdometryError: no frame at all, or no usable frame (see :func:`check_usable`).
     """
+    params = params or VOParams()
+    vo = _run_odometry(camera, frames() if callable(frames) else frames, params)
+    if callable(frames) and vo.disparity_offset != params.disparity_offset_px:
+        _, error, windows = vo.offset_estimate()
+        _LOG.info(
+            "disparity offset %+.3f px (standard error %.3f px over %d windows): second pass with it applied",
+            vo.disparity_offset, error, windows,
+        )  # fmt: skip
+        fixed = replace(params, disparity_offset_px=vo.disparity_offset, estimate_disparity_offset=False)
+        vo = _run_odometry(camera, frames(), fixed)
+    poses = vo.smoothed_poses()
+    check_usable(vo.qualities)
+    return poses, vo.qualities
+
+
+def _run_odometry(camera: StereoCamera, frames: Iterable[_Triple], params: VOParams) -> StereoOdometry:
     vo = StereoOdometry(camera, params)
     for stamp, left, right in frames:
         vo.add(left, right, stamp)
     if not vo.poses:
         raise OdometryError("the input holds no stereo frame")
-    poses = vo.smoothed_poses()
-    check_usable(vo.qualities)
-    return poses, vo.qualities
+    return vo
 
 
 def check_usable(qualities: list[FrameQuality], *, source: str = "the sequence") -> None:
@@ -151,7 +173,7 @@ def poses_for_sequence(
         OdometryError: no usable frame (too little texture, no motion).
     """
     poses, qualities = estimate_poses(
-        sequence.camera, _sequence_frames(sequence, range(len(sequence)), progress), params=params
+        sequence.camera, lambda: _sequence_frames(sequence, range(len(sequence)), progress), params=params
     )
     return poses, np.array([q.reliable for q in qualities], dtype=bool)
 
@@ -183,7 +205,7 @@ def estimate_sequence_poses(
     """
     seq = open_sequence(seq_dir, sequence=sequence)
     indices = range(len(seq))[frames] if frames is not None else range(len(seq))
-    return estimate_poses(seq.camera, _sequence_frames(seq, indices, progress), params=params)
+    return estimate_poses(seq.camera, lambda: _sequence_frames(seq, indices, progress), params=params)
 
 
 # --------------------------------------------------------------------------- bags
@@ -350,14 +372,20 @@ def estimate_bag_poses(
         bag_path, namespace=namespace, stereo_input=stereo_input, slop=slop, dropped=dropped
     )
     stamps: list[int] = []
+    first = [pairs]
 
     def frames() -> Iterator[tuple[float, NDArray[np.uint8], NDArray[np.uint8]]]:
-        for stamp_ns, left, right in tqdm(pairs, desc="odometry", unit="frame", disable=not progress):
+        # A second pass (see estimate_poses) reads the bag again; its drops were counted in the first.
+        source = first.pop() if first else bag_stereo_frames(
+            bag_path, namespace=namespace, stereo_input=stereo_input, slop=slop
+        )[1]  # fmt: skip
+        stamps.clear()
+        for stamp_ns, left, right in tqdm(source, desc="odometry", unit="frame", disable=not progress):
             interrupts.check()
             stamps.append(stamp_ns)
             yield stamp_ns / _NS_PER_S, left, right
 
-    poses, qualities = estimate_poses(camera, frames(), params=params)
+    poses, qualities = estimate_poses(camera, frames, params=params)
     return np.array(stamps, dtype=np.int64), poses, qualities
 
 
@@ -469,7 +497,9 @@ def odometry_command(
             ground_truth = bag_reference_poses(input_path, stamps, namespace=namespace, stereo_input=stereo_input)
     else:
         seq = open_sequence(input_path, sequence=sequence)
-        poses, qualities = estimate_poses(seq.camera, _sequence_frames(seq, range(len(seq)), progress), params=params)
+        poses, qualities = estimate_poses(
+            seq.camera, lambda: _sequence_frames(seq, range(len(seq)), progress), params=params
+        )
         ground_truth = seq.poses
     runtime = time.perf_counter() - started
     out.parent.mkdir(parents=True, exist_ok=True)
