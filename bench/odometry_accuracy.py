@@ -20,7 +20,15 @@ and prints one row per sequence:
   acceptance rule); the worst per-frame error of a reliable frame;
 * the share of stereo features and of pose inliers on moving vehicles
   (highway; the odometry must not use them);
-* the odometry's time per frame (images in memory, rendering excluded).
+* the disparity offset the odometry applied (``VOParams.estimate_disparity_offset``:
+  a sequence whose estimate ends significantly away from 0 is run a second
+  time with it, as ``selfcontra odometry`` does);
+* the odometry's time per frame (images in memory, rendering excluded;
+  both passes).
+
+``--right-shift PX`` moves every right image's content PX to the right, so
+every disparity is PX smaller: a rectification offset, to measure what one
+costs and how much of it the estimate takes back.
 
 Then per scene the mean, standard deviation and worst of each figure, and
 last one JSON line with all of it. Rendered frames are kept in ``--cache``
@@ -201,29 +209,50 @@ def run_sequence(
     oracle: str = "none",
     disparities: NDArray[np.float32] | None = None,
 ) -> dict[str, Any]:
-    """Run the odometry over one sequence and measure it against the true poses (``oracle``: see OracleOdometry)."""
-    vo = OracleOdometry(camera, params, oracle)
-    moving_features = moving_inliers = features = inliers = 0
-    elapsed = 0.0
-    median_disparity = []
-    for k, (left, right, moving) in enumerate(frames):
-        vo.moving = moving
-        vo.disparity = None if disparities is None else disparities[k]
-        started = time.perf_counter()
-        result = vo.add(left, right)
-        elapsed += time.perf_counter() - started
-        d = vo.last_inlier_disparity
-        median_disparity.append(float(np.median(d)) if len(d) else math.nan)
-        if moving is not None and result.quality.reliable and len(vo.last_inliers):
-            uv = np.rint(vo.last_inliers).astype(np.int64)
-            uv[:, 0] = np.clip(uv[:, 0], 0, camera.width - 1)
-            uv[:, 1] = np.clip(uv[:, 1], 0, camera.height - 1)
-            moving_inliers += int(moving[uv[:, 1], uv[:, 0]].sum())
-            inliers += len(uv)
-        if moving is not None and len(vo.last_features):
-            fuv = np.rint(vo.last_features).astype(np.int64)
-            moving_features += int(moving[fuv[:, 1], fuv[:, 0]].sum())
-            features += len(fuv)
+    """Run the odometry over one sequence and measure it against the true poses (``oracle``: see OracleOdometry).
+
+    As :func:`~selfcontra_ros.odometry.run.estimate_poses` does, a sequence whose disparity offset estimate
+    ended away from ``params.disparity_offset_px`` is run a second time with it applied; the time per frame
+    counts both passes.
+    """
+    counts: dict[str, int] = {}
+    median_disparity: list[float] = []
+
+    def run_pass(run_params: VOParams) -> tuple[OracleOdometry, float]:
+        vo = OracleOdometry(camera, run_params, oracle)
+        counts.update(moving_features=0, moving_inliers=0, features=0, inliers=0)
+        median_disparity.clear()
+        elapsed = 0.0
+        for k, (left, right, moving) in enumerate(frames):
+            vo.moving = moving
+            vo.disparity = None if disparities is None else disparities[k]
+            started = time.perf_counter()
+            result = vo.add(left, right)
+            elapsed += time.perf_counter() - started
+            d = vo.last_inlier_disparity
+            median_disparity.append(float(np.median(d)) if len(d) else math.nan)
+            if moving is not None and result.quality.reliable and len(vo.last_inliers):
+                uv = np.rint(vo.last_inliers).astype(np.int64)
+                uv[:, 0] = np.clip(uv[:, 0], 0, camera.width - 1)
+                uv[:, 1] = np.clip(uv[:, 1], 0, camera.height - 1)
+                counts["moving_inliers"] += int(moving[uv[:, 1], uv[:, 0]].sum())
+                counts["inliers"] += len(uv)
+            if moving is not None and len(vo.last_features):
+                fuv = np.rint(vo.last_features).astype(np.int64)
+                counts["moving_features"] += int(moving[fuv[:, 1], fuv[:, 0]].sum())
+                counts["features"] += len(fuv)
+        return vo, elapsed
+
+    vo, elapsed = run_pass(params)
+    estimate, error, windows = vo.offset_estimate()
+    passes = 1
+    if vo.disparity_offset != params.disparity_offset_px:
+        fixed = dataclasses.replace(params, disparity_offset_px=vo.disparity_offset, estimate_disparity_offset=False)
+        vo, second = run_pass(fixed)
+        elapsed += second
+        passes = 2
+    moving_features, moving_inliers = counts["moving_features"], counts["moving_inliers"]
+    features, inliers = counts["features"], counts["inliers"]
     poses = vo.smoothed_poses()  # what estimate_poses returns: step lengths smoothed over the sequence
     reliable = np.array([q.reliable for q in vo.qualities])
     metrics = evaluate_odometry(poses, truth)
@@ -251,6 +280,11 @@ def run_sequence(
         "ms_per_frame": 1000.0 * elapsed / len(frames),
         "statuses": sorted({q.status for q in vo.qualities}),
         "oracle": oracle,
+        "disparity_offset_px": vo.disparity_offset,
+        "offset_estimate_px": estimate,
+        "offset_error_px": error,
+        "offset_windows": windows,
+        "passes": passes,
         "oracle_dropped_pct": 100.0 * vo.dropped / vo.offered if vo.offered else 0.0,
         "per_frame": {
             "f2f_scale_error_pct": [float(v) for v in 100.0 * (f2f / np.maximum(true_steps, 1e-9) - 1.0)],
@@ -335,6 +369,7 @@ COLUMNS = (
     ("worst_reliable_step_pct", "worst step %", "{:.2f}"),
     ("moving_feature_pct", "moving feat. %", "{:.1f}"),
     ("moving_inlier_pct", "moving inl. %", "{:.1f}"),
+    ("disparity_offset_px", "offset px", "{:+.3f}"),
     ("ms_per_frame", "ms/frame", "{:.0f}"),
 )
 
@@ -402,11 +437,26 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
 Sequence = tuple[str, StereoCamera, Frames, NDArray[np.float64], NDArray[np.float32] | None]
 
 
+def shift_right_images(frames: Frames, shift_px: float) -> Frames:
+    """The frames with every right image's content moved ``shift_px`` to the right (bilinear, edges
+    repeated): every disparity ``shift_px`` smaller, as a rectification off by that much (``--right-shift``)."""
+    if shift_px == 0.0:
+        return frames
+    import cv2
+
+    matrix = np.array([[1.0, 0.0, shift_px], [0.0, 1.0, 0.0]])
+    return [
+        (left, cv2.warpAffine(right, matrix, right.shape[::-1], flags=cv2.INTER_LINEAR,
+                              borderMode=cv2.BORDER_REPLICATE), moving)
+        for left, right, moving in frames
+    ]  # fmt: skip
+
+
 def _sequences(args: argparse.Namespace) -> Iterator[Sequence]:
     """Name, camera, frames, true poses and (stereo oracle only) true disparities of each sequence."""
     if args.kitti is not None and Path(args.kitti).exists():
         camera, frames, truth = kitti_frames(Path(args.kitti))
-        yield "kitti06", camera, frames, truth, None
+        yield "kitti06", camera, shift_right_images(frames, args.right_shift), truth, None
     elif args.kitti is not None:
         print(f"(no KITTI sample at {args.kitti}: skipped)", file=sys.stderr)
     for scene in args.scenes:
@@ -415,7 +465,7 @@ def _sequences(args: argparse.Namespace) -> Iterator[Sequence]:
             disparities = None
             if args.oracle in ("stereo", "both"):
                 disparities = true_disparities(scene, seed, args.frames, args.size, args.cache)
-            yield f"{scene}/{seed}", camera, frames, truth, disparities
+            yield f"{scene}/{seed}", camera, shift_right_images(frames, args.right_shift), truth, disparities
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -429,6 +479,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--size", type=parse_size, default=(1226, 370), help="synthetic image size WxH")
     parser.add_argument("--cache", type=Path, default=None, help="folder for rendered frames (.npz)")
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="a VOParams override")
+    parser.add_argument(
+        "--right-shift", type=float, default=0.0, metavar="PX",
+        help="move every right image's content PX to the right (disparities PX smaller: a rectification offset)",
+    )  # fmt: skip
     parser.add_argument(
         "--stereo-bias", nargs="+", metavar="METHOD", help="only measure the stereo features' disparity error "
         "against ground truth for these sub-pixel methods (lk, parabola, none)"
@@ -451,7 +505,9 @@ def main(argv: list[str] | None = None) -> int:
         print(
             f"{name}: {row['translation_pct']:.2f} %, scale {row['scale_pct']:+.2f} %, "
             f"{row['reliable']}/{row['frames']} reliable, {row['bad_reliable']} bad, "
-            f"{row['ms_per_frame']:.0f} ms/frame"
+            f"{row['ms_per_frame']:.0f} ms/frame, disparity offset {row['disparity_offset_px']:+.3f} px "
+            f"(estimate {row['offset_estimate_px']:+.3f} +- {row['offset_error_px']:.3f} px, "
+            f"{row['offset_windows']} windows, {row['passes']} passes)"
             + (
                 f", oracle {args.oracle} dropped {row['oracle_dropped_pct']:.1f} % of the features"
                 if args.oracle != "none"
