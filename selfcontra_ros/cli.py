@@ -234,6 +234,7 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
 def _cmd_odometry(args: argparse.Namespace) -> int:
     from selfcontra_ros.bags.reader import is_bag
     from selfcontra_ros.odometry.run import odometry_command
+    from selfcontra_ros.odometry.stereo_vo import VOParams
 
     _refuse_input_options(args, args.input)
     odometry_command(
@@ -245,6 +246,7 @@ def _cmd_odometry(args: argparse.Namespace) -> int:
         stereo_input=_stereo_input(args, Path(args.input)) if is_bag(Path(args.input)) else None,
         reference_poses=args.pose_source is not None,
         slop=args.slop,
+        params=VOParams(disparity_offset_px=args.disparity_offset, estimate_disparity_offset=not args.fixed_offset),
     )
     return 0
 
@@ -476,6 +478,13 @@ def build_parser() -> argparse.ArgumentParser:
     odo.add_argument("--sequence", default=None, help="sequence of a root holding several (e.g. 06)")
     odo.add_argument("--namespace", default=None, help="stereo topic namespace of a bag (default: found in the bag)")
     odo.add_argument("--step", type=int, default=1, help="metrics: a first frame every STEP frames (KITTI devkit: 10)")
+    odo.add_argument(
+        "--disparity-offset", type=float, default=0.0, metavar="PX",
+        help="the rig's known disparity offset, added to every disparity (default 0; estimated unless --fixed-offset)",
+    )  # fmt: skip
+    odo.add_argument(
+        "--fixed-offset", action="store_true", help="do not estimate the disparity offset: keep --disparity-offset"
+    )
     odo_bag = odo.add_argument_group("a robot's own bag")
     odo_bag.add_argument("--slop", type=float, default=0.0, help="pair left/right images within S seconds")
     _add_input_options(odo_bag, poses=False)

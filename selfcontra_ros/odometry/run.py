@@ -520,12 +520,15 @@ def odometry_command(
         "dropped": dict(sorted(dropped.items())),
         "runtime_s": runtime,
         "ms_per_frame": 1000.0 * runtime / max(len(qualities), 1),
+        "disparity_offset_px": qualities[-1].disparity_offset_px if qualities else 0.0,
         "metrics": None if metrics is None else asdict(metrics),
         "quality": [asdict(q) for q in qualities],
     }
     write_json(json_path, report)
     if echo is not None:
         echo(f"{len(qualities)} frames, {report['reliable_frames']} reliable, {report['ms_per_frame']:.0f} ms/frame")
+        if report["disparity_offset_px"] != 0.0:
+            echo(f"disparity offset applied: {report['disparity_offset_px']:+.3f} px (added to every disparity)")
         for item in unreliable:
             echo(f"  frame {item['frame']}: {item['status']}: {item['message']}")
         if dropped:
