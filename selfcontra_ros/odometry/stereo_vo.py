@@ -157,7 +157,7 @@ class VOParams:
             finds about +0.2 px (disparities too small), which took the
             translation error from 1.37 to 0.83 % and the scale error from
             +1.05 to +0.30 %; on the synthetic scenes, whose disparities have
-            no offset, it stays at 0 on nearly every sequence (README).
+            no offset, it stays at 0 on most sequences, not all (README).
         offset_inlier_px: tracks with a residual above this after the
             adjustment are left out of the offset estimate.
         offset_step_px: the disparity shift ``h`` of the estimate's parabola.
