@@ -68,6 +68,7 @@ from selfcontra_ros.datasets.kitti import open_sequence
 from selfcontra_ros.datasets.synthetic import make_scene
 from selfcontra_ros.geometry import StereoCamera
 from selfcontra_ros.odometry.metrics import evaluate_odometry, path_lengths
+from selfcontra_ros.odometry.run import second_pass_params
 from selfcontra_ros.odometry.stereo_vo import StereoOdometry, VOParams, _Features
 
 DEFAULT_KITTI = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "kitti_odometry"
@@ -246,8 +247,8 @@ def run_sequence(
     vo, elapsed = run_pass(params)
     estimate, error, windows = vo.offset_estimate()
     passes = 1
-    if vo.disparity_offset != params.disparity_offset_px:
-        fixed = dataclasses.replace(params, disparity_offset_px=vo.disparity_offset, estimate_disparity_offset=False)
+    fixed = second_pass_params(vo, params)
+    if fixed is not None:
         vo, second = run_pass(fixed)
         elapsed += second
         passes = 2

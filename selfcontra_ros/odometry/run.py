@@ -62,6 +62,7 @@ __all__ = [
     "odometry_command",
     "poses_for_sequence",
     "quality_paths",
+    "second_pass_params",
     "write_quality",
 ]
 
@@ -96,18 +97,29 @@ def estimate_poses(
         OdometryError: no frame at all, or no usable frame (see :func:`check_usable`).
     """
     params = params or VOParams()
-    vo = _run_odometry(camera, frames() if callable(frames) else frames, params)
-    if callable(frames) and vo.disparity_offset != params.disparity_offset_px:
-        _, error, windows = vo.offset_estimate()
-        _LOG.info(
-            "disparity offset %+.3f px (standard error %.3f px over %d windows): second pass with it applied",
-            vo.disparity_offset, error, windows,
-        )  # fmt: skip
-        fixed = replace(params, disparity_offset_px=vo.disparity_offset, estimate_disparity_offset=False)
-        vo = _run_odometry(camera, frames(), fixed)
+    if not callable(frames):
+        vo = _run_odometry(camera, frames, params)
+    else:
+        vo = _run_odometry(camera, frames(), params)
+        second = second_pass_params(vo, params)
+        if second is not None:
+            _, error, windows = vo.offset_estimate()
+            _LOG.info(
+                "disparity offset %+.3f px (standard error %.3f px over %d windows): second pass with it applied",
+                vo.disparity_offset, error, windows,
+            )  # fmt: skip
+            vo = _run_odometry(camera, frames(), second)
     poses = vo.smoothed_poses()
     check_usable(vo.qualities)
     return poses, vo.qualities
+
+
+def second_pass_params(vo: StereoOdometry, params: VOParams) -> VOParams | None:
+    """The parameters of a second pass over the sequence ``vo`` ran with ``params``: its disparity offset
+    applied from the first frame on, estimation off; None when the offset never left ``params``' value."""
+    if vo.disparity_offset == params.disparity_offset_px:
+        return None
+    return replace(params, disparity_offset_px=vo.disparity_offset, estimate_disparity_offset=False)
 
 
 def _run_odometry(camera: StereoCamera, frames: Iterable[_Triple], params: VOParams) -> StereoOdometry:
