@@ -179,8 +179,9 @@ class OracleOdometry(StereoOdometry):
             keep &= np.nan_to_num(off, nan=np.inf).min(axis=1) <= GROSS_STEREO_PX
         self.offered += len(keep)
         self.dropped += int((~keep).sum())
+        straddle = features.straddle[keep] if features.straddle.size else features.straddle
         return _Features(features.uv[keep], features.disparity[keep], features.descriptors[keep],
-                         features.points[keep]), detected  # fmt: skip
+                         features.points[keep], straddle=straddle), detected  # fmt: skip
 
 
 def kitti_frames(root: Path) -> tuple[StereoCamera, Frames, NDArray[np.float64]]:
