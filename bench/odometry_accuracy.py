@@ -302,7 +302,9 @@ def run_sequence(
 DISPARITY_BINS = (0.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 1000.0)
 
 
-def stereo_bias(scenes: list[str], seeds: list[int], size: tuple[int, int], methods: list[str]) -> dict[str, Any]:
+def stereo_bias(
+    scenes: list[str], seeds: list[int], size: tuple[int, int], methods: list[str], right_shift: float = 0.0
+) -> dict[str, Any]:
     """Disparity error of the odometry's stereo features against the ground truth, per sub-pixel method.
 
     Every 6th frame of 30 of each sequence is rendered; features on a smooth
@@ -311,7 +313,7 @@ def stereo_bias(scenes: list[str], seeds: list[int], size: tuple[int, int], meth
     disparity bin: mean and standard deviation of the error (px) and the
     depth bias it causes (mean of ``d_gt / d - 1``, %); overall: the share
     of right sub-pixel phases within 0.2 px of an integer (0.4 without
-    pixel locking).
+    pixel locking). ``right_shift``: as ``--right-shift`` (every right image moved, disparities smaller).
     """
     import cv2
 
@@ -324,7 +326,8 @@ def stereo_bias(scenes: list[str], seeds: list[int], size: tuple[int, int], meth
                 vo = StereoOdometry(built.camera, VOParams(subpixel=method))
                 for k in range(0, 30, 6):
                     f = built.render(k)
-                    feats, _ = vo._stereo(f.left, f.right)
+                    ((_, right, _),) = shift_right_images([(f.left, f.right, None)], right_shift)
+                    feats, _ = vo._stereo(f.left, right)
                     gt = np.nan_to_num(f.disparity, nan=-1e3).astype(np.float32)
                     u, v = feats.uv[:, 0].astype(np.float32), feats.uv[:, 1].astype(np.float32)
                     d_gt = cv2.remap(gt, u.reshape(-1, 1), v.reshape(-1, 1), cv2.INTER_LINEAR).ravel()
@@ -495,7 +498,11 @@ def main(argv: list[str] | None = None) -> int:
     )  # fmt: skip
     args = parser.parse_args(argv)
     if args.stereo_bias:
-        print(json.dumps({"stereo_bias": stereo_bias(args.scenes, args.seeds, args.size, args.stereo_bias)}))
+        print(
+            json.dumps(
+                {"stereo_bias": stereo_bias(args.scenes, args.seeds, args.size, args.stereo_bias, args.right_shift)}
+            )
+        )
         return 0
     if args.kitti == "":
         args.kitti = None
