@@ -50,6 +50,7 @@ frame, as in KITTI's pose files.
 
 from __future__ import annotations
 
+import copy
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -399,12 +400,11 @@ class VOParams:
         for name in ("offset_inlier_px", "offset_step_px", "offset_sigmas"):
             if not float(getattr(self, name)) > 0:
                 raise OdometryError(f"VOParams.{name} must be > 0, got {getattr(self, name)!r}")
-        if not float(self.offset_straddle_px) >= 0:
-            raise OdometryError(f"VOParams.offset_straddle_px must be >= 0, got {self.offset_straddle_px!r}")
         if int(self.offset_min_windows) < 2:
             raise OdometryError(f"VOParams.offset_min_windows must be >= 2, got {self.offset_min_windows!r}")
-        if not self.length_gate_sigmas >= 0:
-            raise OdometryError(f"VOParams.length_gate_sigmas must be >= 0, got {self.length_gate_sigmas!r}")
+        for name in ("offset_straddle_px", "length_gate_sigmas"):
+            if not float(getattr(self, name)) >= 0:
+                raise OdometryError(f"VOParams.{name} must be >= 0, got {getattr(self, name)!r}")
         if len(self.stereo_window) != 2 or min(int(v) for v in self.stereo_window) < 3:
             raise OdometryError(
                 f"VOParams.stereo_window must be (width, height), each >= 3, got {self.stereo_window!r}"
@@ -499,7 +499,15 @@ class _WindowFrame:
     track_ids: NDArray[np.int64]
     uv: F64
     u_right: F64
-    straddle: NDArray[np.bool_]  # per feature, or empty: see _Features.straddle
+    straddle: NDArray[np.bool_]  # per feature (all False where not measured): see _Features.straddle
+
+    @classmethod
+    def of(cls, index: int, pose: F64, features: _Features) -> _WindowFrame:
+        """The window frame of frame ``index`` at ``pose`` (``T_world_left``, copied by the caller if shared)
+        with ``features`` (their track ids set)."""
+        straddle = features.straddle.copy() if features.straddle.size else np.zeros(len(features.uv), bool)
+        right = features.uv[:, 0] - features.disparity
+        return cls(index, pose, features.track_ids, features.uv.copy(), right, straddle)
 
 
 def _grey(image: NDArray[np.uint8], what: str) -> NDArray[np.uint8]:
@@ -713,9 +721,7 @@ class StereoOdometry:
         depths. Only measured while the offset is estimated (empty otherwise).
         """
         p = self.params
-        if not (p.estimate_disparity_offset and p.offset_straddle_px > 0):
-            return np.zeros(0, bool)
-        if len(uv) == 0:
+        if not (p.estimate_disparity_offset and p.offset_straddle_px > 0 and len(uv)):
             return np.zeros(0, bool)
         raw = disparity - self._offset  # the offset moved the right positions; the halves are measured raw
         found_both = np.ones(len(uv), dtype=bool)
@@ -1207,9 +1213,7 @@ class StereoOdometry:
         if status == "ok" or self._reference is None:
             self._reference = (index, gl, cur)
         if status == "ok":
-            self._window.append(
-                _WindowFrame(index, pose, ids, cur.uv.copy(), cur.uv[:, 0] - cur.disparity, cur.straddle.copy())
-            )
+            self._window.append(_WindowFrame.of(index, pose, cur))
             self._bundle_adjust()
             adjusted = invert_pose(self.poses[index - 1]) @ self.poses[index]
             before = float(np.linalg.norm((invert_pose(self.poses[index - 1]) @ pose)[:3, 3]))
@@ -1363,11 +1367,7 @@ class StereoOdometry:
         cur.track_ids = np.arange(self._next_track, self._next_track + len(cur.uv), dtype=np.int64)
         self._next_track += len(cur.uv)
         self._reference = (index, image, cur)
-        self._window.append(
-            _WindowFrame(
-                index, np.eye(4), cur.track_ids, cur.uv.copy(), cur.uv[:, 0] - cur.disparity, cur.straddle.copy()
-            )
-        )
+        self._window.append(_WindowFrame.of(index, np.eye(4), cur))
         return self._record(np.eye(4), FrameQuality(status="first", reliable=True, **common))
 
     def _pnp_ransac(
@@ -1430,8 +1430,7 @@ class StereoOdometry:
         self._next_track += len(cur.uv)
         self._reference = (index, image, cur)
         self._window.clear()
-        right = cur.uv[:, 0] - cur.disparity
-        self._window.append(_WindowFrame(index, pose.copy(), cur.track_ids, cur.uv.copy(), right, cur.straddle.copy()))
+        self._window.append(_WindowFrame.of(index, pose.copy(), cur))
 
     def _record(self, pose: F64, quality: FrameQuality) -> OdometryResult:
         previous = self.poses[-1] if self.poses else pose
@@ -1469,7 +1468,7 @@ class StereoOdometry:
             obs_point.append(idx)
             obs_uv.append(f.uv[sel])
             obs_ur.append(f.u_right[sel])
-            obs_straddle.append(f.straddle[sel] if f.straddle.size else np.zeros(int(sel.sum()), bool))
+            obs_straddle.append(f.straddle[sel])
             d = f.uv[sel, 0] - f.u_right[sel]
             local = self._triangulate(f.uv[sel], d)
             # Initial point: disparity-weighted mean of the triangulations (near views are more precise).
@@ -1537,8 +1536,7 @@ class StereoOdometry:
         h = p.offset_step_px
         costs = []
         for shift in (-h, 0.0, h):
-            shifted = problem.with_right(problem.u_right - shift)
-            shifted.weight = weight
+            shifted = problem.with_right(problem.u_right - shift, weight)
             fit = least_squares(
                 shifted.residuals, x0, jac=shifted.jacobian, method="trf", x_scale="jac", max_nfev=60, tr_solver="lsmr"
             )  # fmt: skip
@@ -1578,7 +1576,6 @@ class _WindowProblem:
         uv: F64,
         u_right: F64,
     ) -> None:
-        self.camera = camera
         self.fx, self.fy, self.cx, self.cy = camera.fx, camera.fy, camera.cx, camera.cy
         self.fb = camera.focal_baseline
         self.fixed, self.fi, self.pi, self.uv, self.u_right = fixed, fi, pi, uv, u_right
@@ -1603,9 +1600,11 @@ class _WindowProblem:
         self._order = structure.data.astype(np.int64) - 1
         self._indices, self._indptr, self._shape = structure.indices, structure.indptr, structure.shape
 
-    def with_right(self, u_right: F64) -> _WindowProblem:
-        """The same problem with other right-image measurements (weights reset to 1)."""
-        return _WindowProblem(self.camera, self.fixed, self.n_free, self.n_points, self.fi, self.pi, self.uv, u_right)
+    def with_right(self, u_right: F64, weight: F64) -> _WindowProblem:
+        """The same problem (its Jacobian structure shared) with other right-image measurements and weights."""
+        other = copy.copy(self)
+        other.u_right, other.weight = u_right, weight
+        return other
 
     def _camera_points(self, x: F64) -> tuple[F64, F64, F64, F64]:
         """The free frames' rotation vectors (F, 3); every frame's rotation (F+1, 3, 3) and translation (F+1, 3);
