@@ -51,6 +51,7 @@ frame, as in KITTI's pose files.
 from __future__ import annotations
 
 import copy
+import math
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -186,6 +187,16 @@ class VOParams:
             the synthetic sequences without offset are unchanged (README).
             0.5 and 2 px did worse on the shifted tuning highways 1-30
             (1.53 and 1.61 % against 1.45 % without seed 12).
+        offset_window_std_px: a window's estimate counts only when the
+            window itself pins the offset down to within this standard
+            deviation (pixels): ``sigma h / sqrt(c)`` from its parabola, ``c``
+            the cost's second difference and ``sigma`` the re-solved window's
+            residual per degree of freedom (0: every window counts). Where the
+            disparities are large (orbit: 30-60 px), an offset barely bends the
+            window's cost (one window there pins it to 0.05-0.2 px; on KITTI 06
+            and the highway to 0.015-0.05 px), and the features' own
+            systematic errors of a tenth of a pixel, the same in every window,
+            read as a significant offset (orbit seed 4: -0.48 px).
         ransac_threshold_px: PnP RANSAC inlier threshold.
         ransac_iterations: PnP RANSAC iterations.
         min_features: fewer left features than this: ``few_features``.
@@ -387,6 +398,7 @@ class VOParams:
     offset_min_windows: int = 3
     offset_sigmas: float = 3.0
     offset_straddle_px: float = 1.0
+    offset_window_std_px: float = 0.1
 
     def __post_init__(self) -> None:
         positive = ("features", "grid_rows", "grid_cols", "lk_window", "ransac_iterations", "min_inliers")
@@ -402,7 +414,7 @@ class VOParams:
                 raise OdometryError(f"VOParams.{name} must be > 0, got {getattr(self, name)!r}")
         if int(self.offset_min_windows) < 2:
             raise OdometryError(f"VOParams.offset_min_windows must be >= 2, got {self.offset_min_windows!r}")
-        for name in ("offset_straddle_px", "length_gate_sigmas"):
+        for name in ("offset_straddle_px", "offset_window_std_px", "length_gate_sigmas"):
             if not float(getattr(self, name)) >= 0:
                 raise OdometryError(f"VOParams.{name} must be >= 0, got {getattr(self, name)!r}")
         if len(self.stereo_window) != 2 or min(int(v) for v in self.stereo_window) < 3:
@@ -1522,7 +1534,8 @@ class StereoOdometry:
         ``straddle`` per observation, too) with every disparity shifted by ``-h, 0, +h``
         (``h = offset_step_px``), each solved from the same start. Every
         ``window``-th adjustment (windows that share no frame) adds one
-        estimate; once ``offset_min_windows`` exist, their mean replaces
+        estimate, when the parabola's own standard deviation is within
+        ``offset_window_std_px``; once ``offset_min_windows`` exist, their mean replaces
         ``disparity_offset_px`` when it differs from it by more than
         ``offset_sigmas`` standard errors (the windows' spread, at least
         :data:`_OFFSET_STD_FLOOR_PX`).
@@ -1533,7 +1546,28 @@ class StereoOdometry:
         weight = problem.weight * ~np.isin(problem.pi, outliers)
         if np.unique(problem.pi[weight > 0]).size < p.min_inliers:
             return
-        h = p.offset_step_px
+        step, std = self._window_offset(problem, weight, x0)
+        if not (np.isfinite(step) and (p.offset_window_std_px <= 0 or std <= p.offset_window_std_px)):
+            return
+        self._offset_windows.append(self._offset + step)
+        mean, error, n = self.offset_estimate()
+        if n >= p.offset_min_windows:
+            significant = abs(mean - p.disparity_offset_px) > p.offset_sigmas * error
+            self._offset = mean if significant else float(p.disparity_offset_px)
+
+    def _window_offset(self, problem: _WindowProblem, weight: F64, x0: F64) -> tuple[float, float]:
+        """The disparity shift (pixels) that minimises the window's cost, and its standard deviation.
+
+        The cost (plain least squares, observations of ``weight`` 0 left out)
+        is solved from ``x0`` with every disparity shifted by ``-h, 0, +h``
+        (``h = VOParams.offset_step_px``); the parabola through the three
+        gives the minimum (clipped to ``+-2 h``) and, with the residual
+        variance per degree of freedom ``sigma^2`` (3 per observation; 6 per
+        free frame and 3 per point), its standard deviation ``sigma h /
+        sqrt(c)``, ``c`` the cost's second difference (cost ~ ``c (s -
+        s*)^2 / (2 h^2)``). NaN, NaN when the cost does not curve upwards.
+        """
+        h = self.params.offset_step_px
         costs = []
         for shift in (-h, 0.0, h):
             shifted = problem.with_right(problem.u_right - shift, weight)
@@ -1544,13 +1578,11 @@ class StereoOdometry:
         lower, middle, upper = costs
         curvature = lower + upper - 2.0 * middle
         if not curvature > 0:
-            return
-        step = float(np.clip(0.5 * h * (lower - upper) / curvature, -2.0 * h, 2.0 * h))
-        self._offset_windows.append(self._offset + step)
-        mean, error, n = self.offset_estimate()
-        if n >= p.offset_min_windows:
-            significant = abs(mean - p.disparity_offset_px) > p.offset_sigmas * error
-            self._offset = mean if significant else float(p.disparity_offset_px)
+            return math.nan, math.nan
+        used = weight > 0
+        dof = 3 * int(used.sum()) - 6 * problem.n_free - 3 * np.unique(problem.pi[used]).size
+        std = h * math.sqrt(2.0 * middle / max(dof, 1) / curvature)
+        return float(np.clip(0.5 * h * (lower - upper) / curvature, -2.0 * h, 2.0 * h)), std
 
 
 class _WindowProblem:

@@ -399,6 +399,7 @@ def test_a_known_disparity_offset_is_applied_and_checked() -> None:
         {"offset_step_px": 0.0},
         {"offset_min_windows": 1},
         {"offset_straddle_px": -1.0},
+        {"offset_window_std_px": -0.1},
     ):
         with pytest.raises(OdometryError):
             VOParams(**bad)

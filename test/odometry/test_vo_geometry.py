@@ -21,6 +21,7 @@ from selfcontra_ros.odometry.stereo_vo import (
     _pose_from_vector,
     _row_candidates,
     _rts_constant_velocity,
+    _vector_from_pose,
     _WindowProblem,
     smooth_step_lengths,
 )
@@ -445,3 +446,55 @@ def test_static_frames_stay_still_when_smoothed() -> None:
     steps = np.linalg.inv(smoothed[:-1]) @ smoothed[1:]
     np.testing.assert_allclose(steps[2:4, :3, 3], 0.0, atol=1e-12)
     assert np.all(np.linalg.norm(steps[[0, 1, 4, 5], :3, 3], axis=1) > 0.5)
+
+
+def _offset_window(
+    rng: np.random.Generator, near: float, far: float, step_m: float, offset_px: float, sigma_px: float
+) -> tuple[_WindowProblem, NDArray[np.float64]]:
+    """A window of four frames (the oldest fixed) moving ``step_m`` forward per frame, 120 points seen in all,
+    every disparity ``offset_px`` too small, noise ``sigma_px`` on each of u, v and u_right; the true state."""
+    n_free, n_points = 3, 120
+    points = _points(rng, n_points, near, far)
+    motion = _pose_from_vector(np.array([0.0, np.deg2rad(0.3), 0.0, step_m / 6.0, 0.0, step_m]))
+    cam_world = [np.eye(4)]
+    for _ in range(n_free):
+        cam_world.append(invert_pose(invert_pose(cam_world[-1]) @ motion))
+    fi = np.repeat(np.arange(n_free + 1), n_points)
+    pi = np.tile(np.arange(n_points), n_free + 1)
+    xc = np.stack([points @ t[:3, :3].T + t[:3, 3] for t in cam_world])[fi, pi]
+    u = CAMERA.fx * xc[:, 0] / xc[:, 2] + CAMERA.cx
+    v = CAMERA.fy * xc[:, 1] / xc[:, 2] + CAMERA.cy
+    noise = rng.normal(0.0, sigma_px, (fi.size, 3))
+    uv = np.column_stack([u, v]) + noise[:, :2]
+    u_right = u - CAMERA.focal_baseline / xc[:, 2] + offset_px + noise[:, 2]
+    problem = _WindowProblem(CAMERA, cam_world[0], n_free, n_points, fi, pi, uv, u_right)
+    x0 = np.concatenate([np.concatenate([_vector_from_pose(t) for t in cam_world[1:]]), points.ravel()])
+    return problem, x0
+
+
+@pytest.mark.parametrize(("near", "far", "step_m", "observable"), [(2.0, 4.0, 0.6, True), (6.0, 12.0, 0.2, False)])
+def test_a_windows_offset_estimate_knows_its_own_spread(
+    near: float, far: float, step_m: float, observable: bool
+) -> None:
+    """A window's offset estimate (the parabola through its cost at three disparity shifts) over 30 noise draws:
+    it finds the simulated 0.3 px, and the standard deviation it states for itself is the spread the draws
+    show. Strong parallax pins the offset to a few hundredths of a pixel; a short step over a narrow depth
+    range leaves it loose, and such a window is not counted (``offset_window_std_px``, 0.1 px)."""
+    vo = StereoOdometry(CAMERA, VOParams())
+    steps, stds = [], []
+    for seed in range(30):
+        problem, x0 = _offset_window(np.random.default_rng(seed), near, far, step_m, 0.3, 0.2)
+        step, std = vo._window_offset(problem, np.ones(problem.fi.size), x0)
+        steps.append(step)
+        stds.append(std)
+    spread = float(np.std(steps, ddof=1))
+    stated = float(np.mean(stds))
+    # Measured: 0.290 (spread 0.023, stated 0.026) and 0.246 (0.142, 0.176).
+    assert abs(np.mean(steps) - 0.3) < 3.0 * spread / np.sqrt(len(steps)) + 0.02
+    assert 0.7 < stated / spread < 1.6, (stated, spread)
+    assert (stated < 0.05) if observable else (stated > 0.1), stated
+    # The estimate counts only when the window pins it down; with the test off (0) every window counts.
+    for limit, counted in ((0.1, observable), (0.0, True)):
+        gated = StereoOdometry(CAMERA, replace(VOParams(), offset_window_std_px=limit))
+        gated._estimate_offset(problem, np.zeros(3 * problem.fi.size), x0, np.zeros(problem.fi.size, bool))
+        assert len(gated._offset_windows) == int(counted)
