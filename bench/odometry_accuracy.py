@@ -69,7 +69,7 @@ from selfcontra_ros.datasets.synthetic import make_scene
 from selfcontra_ros.geometry import StereoCamera
 from selfcontra_ros.odometry.metrics import evaluate_odometry, path_lengths
 from selfcontra_ros.odometry.run import second_pass_params
-from selfcontra_ros.odometry.stereo_vo import StereoOdometry, VOParams, _Features
+from selfcontra_ros.odometry.stereo_vo import StereoOdometry, VOParams, _Features, mark_isolated
 
 DEFAULT_KITTI = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "kitti_odometry"
 #: A reliable frame whose motion from the previous frame is off by more than this share of its length is bad.
@@ -256,7 +256,8 @@ def run_sequence(
     moving_features, moving_inliers = counts["moving_features"], counts["moving_inliers"]
     features, inliers = counts["features"], counts["inliers"]
     poses = vo.smoothed_poses()  # what estimate_poses returns: step lengths smoothed over the sequence
-    reliable = np.array([q.reliable for q in vo.qualities])
+    qualities = mark_isolated(vo.qualities, vo.params)  # and reliable frames among unreliable ones marked
+    reliable = np.array([q.reliable for q in qualities])
     metrics = evaluate_odometry(poses, truth)
     steps = step_errors(poses, truth)
     true_length = float(path_lengths(truth)[-1])
@@ -280,7 +281,7 @@ def run_sequence(
         "moving_feature_pct": 100.0 * moving_features / features if features else math.nan,
         "moving_inlier_pct": 100.0 * moving_inliers / inliers if inliers else math.nan,
         "ms_per_frame": 1000.0 * elapsed / len(frames),
-        "statuses": sorted({q.status for q in vo.qualities}),
+        "statuses": sorted({q.status for q in qualities}),
         "oracle": oracle,
         "disparity_offset_px": vo.disparity_offset,
         "offset_estimate_px": estimate,

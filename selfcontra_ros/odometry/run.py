@@ -47,7 +47,7 @@ from selfcontra_ros.bags.tf import TFBuffer
 from selfcontra_ros.datasets.kitti import OdometrySequence, StereoScene, open_sequence, write_poses
 from selfcontra_ros.geometry import StereoCamera
 from selfcontra_ros.odometry.metrics import SHORT_LENGTHS, OdometryMetrics, evaluate_odometry
-from selfcontra_ros.odometry.stereo_vo import FrameQuality, OdometryError, StereoOdometry, VOParams
+from selfcontra_ros.odometry.stereo_vo import FrameQuality, OdometryError, StereoOdometry, VOParams, mark_isolated
 from selfcontra_ros.reports import write_json
 from selfcontra_ros.ros.conversions import stamp_to_nanoseconds
 
@@ -91,7 +91,8 @@ def estimate_poses(
         (N, 4, 4) poses ``T_world_left`` (metres, after the windowed
         refinement, step lengths smoothed over the sequence:
         :func:`~selfcontra_ros.odometry.stereo_vo.smooth_step_lengths`) and
-        the per-frame quality.
+        the per-frame quality (reliable frames among unreliable ones
+        reported ``isolated``: :func:`~selfcontra_ros.odometry.stereo_vo.mark_isolated`).
 
     Raises:
         OdometryError: no frame at all, or no usable frame (see :func:`check_usable`).
@@ -110,8 +111,9 @@ def estimate_poses(
             )  # fmt: skip
             vo = _run_odometry(camera, frames(), second)
     poses = vo.smoothed_poses()
-    check_usable(vo.qualities)
-    return poses, vo.qualities
+    qualities = mark_isolated(vo.qualities, vo.params)
+    check_usable(qualities)
+    return poses, qualities
 
 
 def second_pass_params(vo: StereoOdometry, params: VOParams) -> VOParams | None:

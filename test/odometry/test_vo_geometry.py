@@ -23,6 +23,7 @@ from selfcontra_ros.odometry.stereo_vo import (
     _rts_constant_velocity,
     _vector_from_pose,
     _WindowProblem,
+    mark_isolated,
     smooth_step_lengths,
 )
 
@@ -498,3 +499,23 @@ def test_a_windows_offset_estimate_knows_its_own_spread(
         gated = StereoOdometry(CAMERA, replace(VOParams(), offset_window_std_px=limit))
         gated._estimate_offset(problem, np.zeros(3 * problem.fi.size), x0, np.zeros(problem.fi.size, bool))
         assert len(gated._offset_windows) == int(counted)
+
+
+def test_a_reliable_frame_among_unreliable_ones_is_marked_isolated() -> None:
+    """A reliable frame with no other reliable frame within ``isolated_frames`` (2) on either side is
+    reported unreliable, pose untouched; the first frame counts as a neighbour and is never marked."""
+    pattern = "R..R..R.R...RR"  # R reliable, . weak_scale; frame 0 is the first
+    qualities = [
+        FrameQuality(index=k, stamp=float(k), status=("first" if k == 0 else "ok" if c == "R" else "weak_scale"),
+                     reliable=c == "R", features=500, stereo_matches=300, translation_m=1.0 + k)
+        for k, c in enumerate(pattern)
+    ]  # fmt: skip
+    marked = mark_isolated(qualities, VOParams())
+    flags = "".join("R" if q.reliable else "i" if q.status == "isolated" else "." for q in marked)
+    # Frame 3 is 3 from frame 0 and 3 from frame 6: alone. 6 and 8 are 2 apart, 12 and 13 neighbours.
+    assert flags == "R..i..R.R...RR"
+    assert marked[3].translation_m == qualities[3].translation_m and "within 2 frames" in marked[3].message
+    # Frame 0 alone is still reliable; a reach of 3 keeps frame 3 (frame 0 and frame 6 are within it).
+    assert mark_isolated(qualities[:1], VOParams())[0].reliable
+    assert [q.reliable for q in mark_isolated(qualities, VOParams(isolated_frames=3))] == [c == "R" for c in pattern]
+    assert mark_isolated(qualities, VOParams(isolated_frames=0)) == qualities
