@@ -198,7 +198,11 @@ class VOParams:
             window's cost (one window there pins it to 0.05-0.2 px; on KITTI 06
             and the highway to 0.015-0.05 px), and the features' own
             systematic errors of a tenth of a pixel, the same in every window,
-            read as a significant offset (orbit seed 4: -0.48 px).
+            read as a significant offset (orbit seed 4: -0.48 px, 0.42 ->
+            0.63 %). With 0.1 px orbit seeds 1-25 take no offset (4 did
+            before); KITTI 06, street and the highway with or without a
+            simulated 0.3 px offset are unchanged. 0.05 px lost shifted
+            highways (2.69 -> 2.77 %), 0.2 px let seed 4's offset back (README).
         ransac_threshold_px: PnP RANSAC inlier threshold.
         ransac_iterations: PnP RANSAC iterations.
         min_features: fewer left features than this: ``few_features``.
