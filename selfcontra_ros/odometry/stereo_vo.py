@@ -200,8 +200,9 @@ class VOParams:
             systematic errors of a tenth of a pixel, the same in every window,
             read as a significant offset (orbit seed 4: -0.48 px, 0.42 ->
             0.63 %). With 0.1 px orbit seeds 1-25 take no offset (4 did
-            before); KITTI 06, street and the highway with or without a
-            simulated 0.3 px offset are unchanged. 0.05 px lost shifted
+            before); KITTI 06, street and the shifted highways 1-30 are
+            unchanged, the highways 1-30, 41-100 and 101-130 but for seeds 11
+            (1.55 -> 1.54 %) and 87 (2.26 -> 1.43 %). 0.05 px lost shifted
             highways (2.69 -> 2.77 %), 0.2 px let seed 4's offset back (README).
         ransac_threshold_px: PnP RANSAC inlier threshold.
         ransac_iterations: PnP RANSAC iterations.
