@@ -1301,17 +1301,23 @@ class StereoOdometry:
 
     def _step_prior(self, index: int, reliable: bool) -> None:
         """After the measured frame ``index``: a reliable one sets the velocity prior and mends the unreliable
-        frames before it (:meth:`_interpolate_unreliable_steps`); a ``weak_scale`` one measured from the frame
-        before keeps its measured rotation but takes the last reliable step's translation (in the camera
-        frame: a vehicle's velocity changes little from one frame to the next)."""
+        frames before it (:meth:`_interpolate_unreliable_steps`); a ``weak_scale`` one keeps its measured
+        rotation (per frame, when measured from a reference further back) but takes the last reliable step's
+        translation from the frame before (in the camera frame: a vehicle's velocity changes little from one
+        frame to the next)."""
         if reliable:
             self._interpolate_unreliable_steps(index)
             self._reliable_step = self._frame_step(index)[:3, 3].copy()
             self._reliable_index = index
             return
-        if self._reliable_step is None or self.qualities[index].reference != index - 1:
+        reference = self.qualities[index].reference
+        if self._reliable_step is None or not 0 <= reference < index:
             return
-        step = invert_pose(self.poses[index - 1]) @ self.poses[index]
+        # Measured across a failed frame (a truck's rigid group was rejected there), the motion's rotation per
+        # frame; the frame before holds a constant-velocity guess.
+        step = invert_pose(self.poses[reference]) @ self.poses[index]
+        if reference < index - 1:
+            step = _step_of(step, index - reference)
         step[:3, 3] = self._reliable_step
         self.poses[index] = self.poses[index - 1] @ step
         for frame in self._window:

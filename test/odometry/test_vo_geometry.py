@@ -519,3 +519,29 @@ def test_a_reliable_frame_among_unreliable_ones_is_marked_isolated() -> None:
     assert mark_isolated(qualities[:1], VOParams())[0].reliable
     assert [q.reliable for q in mark_isolated(qualities, VOParams(isolated_frames=3))] == [c == "R" for c in pattern]
     assert mark_isolated(qualities, VOParams(isolated_frames=0)) == qualities
+
+
+@pytest.mark.parametrize("gap", [1, 2])
+def test_a_weak_step_takes_the_last_reliable_translation_whatever_its_reference(gap: int) -> None:
+    """A ``weak_scale`` frame keeps its measured rotation (per frame) and takes the last reliable step's
+    translation from the frame before, also when it was measured across a failed frame (``gap`` 2): a truck
+    moving with the camera measured 0.3 m over two frames, which kept as it was put the frame behind the
+    constant-velocity guess before it (highway seed 120's last frame: 192 % off)."""
+    vo = StereoOdometry(CAMERA, VOParams())
+    forward = _pose_from_vector(np.array([0.0, 0.0, 0.0, 0.0, 0.0, 3.0]))
+    vo.poses = [np.eye(4), forward, forward @ forward]  # frame 2: reliable, or a constant-velocity guess
+    yaw = np.deg2rad(0.4)
+    measured = _pose_from_vector(np.array([0.0, yaw, 0.0, 0.0, 0.0, 0.3]))  # from frame 3 - gap to frame 3
+    vo.poses.append(vo.poses[3 - gap] @ measured)
+    statuses = ["first", "ok", "ok" if gap == 1 else "implausible", "weak_scale"]
+    vo.qualities = [
+        FrameQuality(index=k, stamp=float(k), status=s, reliable=s in ("first", "ok"), features=500,
+                     stereo_matches=300, reference=(-1 if k == 0 else 3 - gap if k == 3 else k - 1))
+        for k, s in enumerate(statuses)
+    ]  # fmt: skip
+    vo._reliable_step = np.array([0.0, 0.0, 3.0])
+    vo._step_prior(3, reliable=False)
+    step = invert_pose(vo.poses[2]) @ vo.poses[3]
+    np.testing.assert_allclose(step[:3, 3], [0.0, 0.0, 3.0], atol=1e-12)
+    angle = np.arccos(np.clip((np.trace(step[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))
+    np.testing.assert_allclose(angle, yaw / gap, atol=1e-9)
