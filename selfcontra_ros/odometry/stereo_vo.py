@@ -433,11 +433,9 @@ class VOParams:
         for name in ("offset_inlier_px", "offset_step_px", "offset_sigmas"):
             if not float(getattr(self, name)) > 0:
                 raise OdometryError(f"VOParams.{name} must be > 0, got {getattr(self, name)!r}")
-        if int(self.isolated_frames) < 0:
-            raise OdometryError(f"VOParams.isolated_frames must be >= 0, got {self.isolated_frames!r}")
         if int(self.offset_min_windows) < 2:
             raise OdometryError(f"VOParams.offset_min_windows must be >= 2, got {self.offset_min_windows!r}")
-        for name in ("offset_straddle_px", "offset_window_std_px", "length_gate_sigmas"):
+        for name in ("offset_straddle_px", "offset_window_std_px", "length_gate_sigmas", "isolated_frames"):
             if not float(getattr(self, name)) >= 0:
                 raise OdometryError(f"VOParams.{name} must be >= 0, got {getattr(self, name)!r}")
         if len(self.stereo_window) != 2 or min(int(v) for v in self.stereo_window) < 3:
