@@ -978,6 +978,7 @@ class LabelerNode(Node):
         camera = session.camera
         pivot = items[self._keys[0]]
         frame_id = str(pivot.header.frame_id)
+        posed = True  # False: the odometry found the frame's pose unreliable; its outputs go out, it is not labelled
         try:
             if self._external:
                 disparity_in, _, _ = disparity_from_message(pivot)
@@ -1006,8 +1007,8 @@ class LabelerNode(Node):
                     return
                 matched = session.match_frame(left, right)
                 disparity, depth, frame = matched.disparity, matched.depth, matched.frame
-                if self._odometry is not None and not self._odometry_pose(match.stamp_ns, left, right):
-                    return
+                if self._odometry is not None:
+                    posed = self._odometry_pose(match.stamp_ns, left, right)
         except ImageError as exc:
             self._drop(_IMAGE_REASONS.get(exc.reason, exc.reason), str(exc))
             return
@@ -1020,20 +1021,18 @@ class LabelerNode(Node):
         if frame is not None:
             self._confidence_for(session, frame, depth, match.stamp_ns, frame_id)
         p = self.matcher_params
-        if self._disparity_pub is None:
-            self._after_match(session, match.stamp_ns, frame_id, disparity, frame)
-            return
-        self._disparity_pub.publish(
-            disparity_image(
-                disparity,
-                camera,
-                stamp=stamp,
-                frame_id=frame_id,
-                min_disparity=float(p.min_disparity),
-                max_disparity=p.max_disparity,
+        if self._disparity_pub is not None:
+            self._disparity_pub.publish(
+                disparity_image(
+                    disparity,
+                    camera,
+                    stamp=stamp,
+                    frame_id=frame_id,
+                    min_disparity=float(p.min_disparity),
+                    max_disparity=p.max_disparity,
+                )
             )
-        )
-        self._after_match(session, match.stamp_ns, frame_id, disparity, frame)
+        self._after_match(session, match.stamp_ns, frame_id, disparity, frame, label=posed)
 
     def _after_match(
         self,
@@ -1042,10 +1041,15 @@ class LabelerNode(Node):
         frame_id: str,
         disparity: NDArray[np.float32],
         frame: ConfidenceFrame | None = None,
+        *,
+        label: bool = True,
     ) -> None:
-        """Queue a matched view until its pose is known."""
+        """Queue a matched view until its pose is known (``label`` False: its outputs are out, it is not labelled)."""
         self._count("depth_published")
         self._newest_frame_ns = stamp_ns
+        if not label:
+            self._release_views()
+            return
         self._awaiting_pose.append(_View(session, ViewKey(stamp_ns, frame_id), disparity, frame=frame))
         if len(self._awaiting_pose) > self._queue_size:
             dropped = self._awaiting_pose.pop(0)
@@ -1101,12 +1105,13 @@ class LabelerNode(Node):
                 self._drop("error", f"confidence of the frame at {job.stamp_ns} ns: {type(exc).__name__}: {exc}")
 
     def _odometry_pose(self, stamp_ns: int, left: NDArray[np.uint8], right: NDArray[np.uint8]) -> bool:
-        """``pose_source: odometry``: estimate the frame's pose into the pose buffer; False drops the frame.
+        """``pose_source: odometry``: estimate the frame's pose into the pose buffer; False: the frame is not labelled.
 
         Runs on the subscription thread, as every frame must reach the
         odometry in order (about 150 ms a frame at KITTI size on 2 cores). A
         frame whose pose is unreliable is never labelled (it would make false
-        labels); its depth is still published.
+        labels, counted as the drop ``odometry_unreliable``); its depth,
+        disparity and confidence do not depend on the pose and are published.
         """
         assert self._odometry is not None
         pose = self._odometry.add(stamp_ns, left, right)

@@ -483,3 +483,50 @@ def test_odometry_pose_source_labels_with_visual_odometry_poses(
     for k, msg in enumerate(received):
         assert np.array_equal(image_to_numpy(msg), expected[k].labels), f"labels of frame {k} differ"
     assert node.stats()["drops"].get("odometry_unreliable", 0) == 0
+
+
+def test_a_frame_the_odometry_cannot_pose_keeps_its_depth_and_is_not_labelled(
+    frames: Frames, params_file: Path, ros_node: Any, labeler_node: Callable[..., Any]
+) -> None:
+    """pose_source odometry: a textureless frame has no reliable pose; its depth and disparity go out, no labels."""
+    from selfcontra_ros.odometry.run import OnlineOdometry
+    from selfcontra_ros.ros.conversions import image_to_numpy
+
+    blank = 4  # a lens cap: no features, so no pose
+    left = [np.full_like(im, 128) if k == blank else im for k, im in enumerate(frames.left)]
+    right = [np.full_like(im, 128) if k == blank else im for k, im in enumerate(frames.right)]
+    odometry = OnlineOdometry(frames.camera)
+    estimated = [odometry.add(frames.stamp_ns(k), left[k], right[k]) for k in range(FRAMES)]
+    unposed = [k for k, pose in enumerate(estimated) if pose is None]
+    assert blank in unposed and len(unposed) < FRAMES // 2, unposed
+    matcher, labeler = load_params(params_file)
+    session = LabelingSession(frames.camera, matcher, labeler)
+    expected = []
+    for k, pose in enumerate(estimated):
+        if pose is not None:
+            expected += session.process(left[k], right[k], pose, stamp=frames.stamp_ns(k) / 1e9, key=k).labelled
+    assert expected, "some views should be labelled"
+
+    node = labeler_node(pose_source="odometry")
+    feeder = Feeder(ros_node)
+    recorder = Recorder(ros_node)
+    subscribed = lambda: feeder.left.get_subscription_count() >= 1 and recorder.matched()  # noqa: E731
+    assert spin_nodes([node, ros_node], subscribed, WAIT_S)
+    for k in range(FRAMES):
+        stamp = frames.stamp_ns(k)
+        feeder.infos(frames.camera, stamp)
+        feeder.images(left[k], right[k], stamp)
+    done = spin_nodes(
+        [node, ros_node],
+        lambda: recorder.count(topics.LABELS) >= len(expected) and recorder.count(topics.DEPTH) >= FRAMES,
+        WAIT_S,
+    )
+    assert done, (recorder.stats, node.stats())
+    assert [stamp_ns(m) for m in recorder.received[topics.DEPTH]] == [frames.stamp_ns(k) for k in range(FRAMES)]
+    assert [stamp_ns(m) for m in recorder.received[topics.DISPARITY]] == [frames.stamp_ns(k) for k in range(FRAMES)]
+    received = recorder.received[topics.LABELS]
+    assert [stamp_ns(m) for m in received] == [frames.stamp_ns(r.key) for r in expected]
+    assert not {stamp_ns(m) for m in received} & {frames.stamp_ns(k) for k in unposed}
+    for msg, result in zip(received, expected, strict=True):
+        assert np.array_equal(image_to_numpy(msg), result.labels)
+    assert node.stats()["drops"].get("odometry_unreliable", 0) == len(unposed)
