@@ -30,7 +30,7 @@ import logging
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from dataclasses import asdict, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -47,11 +47,19 @@ from selfcontra_ros.bags.tf import TFBuffer
 from selfcontra_ros.datasets.kitti import OdometrySequence, StereoScene, open_sequence, write_poses
 from selfcontra_ros.geometry import StereoCamera
 from selfcontra_ros.odometry.metrics import SHORT_LENGTHS, OdometryMetrics, evaluate_odometry
-from selfcontra_ros.odometry.stereo_vo import FrameQuality, OdometryError, StereoOdometry, VOParams, mark_isolated
+from selfcontra_ros.odometry.stereo_vo import (
+    FrameQuality,
+    IsolationGate,
+    OdometryError,
+    StereoOdometry,
+    VOParams,
+    mark_isolated,
+)
 from selfcontra_ros.reports import write_json
 from selfcontra_ros.ros.conversions import stamp_to_nanoseconds
 
 __all__ = [
+    "OnlineDecision",
     "OnlineOdometry",
     "bag_reference_poses",
     "bag_stereo_frames",
@@ -406,16 +414,33 @@ def estimate_bag_poses(
 # --------------------------------------------------------------------------- online use (the node)
 
 
+@dataclass(frozen=True)
+class OnlineDecision:
+    """The final decision on one frame of :class:`OnlineOdometry`: ``pose`` (4x4, metres) or None when unreliable."""
+
+    stamp_ns: int
+    pose: NDArray[np.float64] | None
+    quality: FrameQuality
+
+
 class OnlineOdometry:
     """Poses for the labeler node when no pose topic is configured (``pose_source: odometry``).
 
-    ``add(stamp_ns, left, right)`` returns the pose ``T_world_left`` of the
-    pair, or None when the frame is unreliable (the node then skips it, as
-    for a missing pose). :attr:`last_quality` explains the decision.
+    ``add(stamp_ns, left, right)`` returns the frames whose pose is now
+    decided, oldest first: each frame's pose ``T_world_left``, or None when
+    it is unreliable (the node then skips it, as for a missing pose). The
+    decisions are those of the offline :func:`estimate_poses` apart from the
+    step-length smoother: a reliable frame alone among unreliable ones is
+    reported ``isolated`` (:class:`~selfcontra_ros.odometry.stereo_vo.IsolationGate`),
+    so such a frame, and the frames behind it, are decided up to
+    ``VOParams.isolated_frames`` frames later; every other frame at once.
+    :attr:`last_quality` is the newest frame's quality as measured.
     """
 
     def __init__(self, camera: StereoCamera, params: VOParams | None = None) -> None:
         self._vo = StereoOdometry(camera, params)
+        self._gate = IsolationGate(self._vo.params)
+        self._stamps: dict[int, int] = {}  # frame index -> stamp, of the frames not decided yet
         self.last_quality: FrameQuality | None = None
 
     @property
@@ -423,11 +448,27 @@ class OnlineOdometry:
         """The stereo camera the odometry was built for."""
         return self._vo.camera
 
-    def add(self, stamp_ns: int, left: NDArray[np.uint8], right: NDArray[np.uint8]) -> NDArray[np.float64] | None:
-        """Pose of a new pair (4x4, metres), or None when it is unreliable."""
+    def add(self, stamp_ns: int, left: NDArray[np.uint8], right: NDArray[np.uint8]) -> list[OnlineDecision]:
+        """Take a new pair; return the decisions now final (this frame's, earlier ones', or none yet)."""
         result = self._vo.add(left, right, stamp_ns / _NS_PER_S)
         self.last_quality = result.quality
-        return result.pose if result.quality.reliable else None
+        self._stamps[result.quality.index] = int(stamp_ns)
+        return self._decisions(self._gate.add(result.pose, result.quality))
+
+    def finish(self) -> list[OnlineDecision]:
+        """The end of the stream: decide the frames still waiting (as :func:`mark_isolated` at a sequence's end)."""
+        return self._decisions(self._gate.finish())
+
+    def undecided(self) -> list[int]:
+        """Stamps of the frames added whose decision has not come out yet."""
+        return [self._stamps[index] for index in self._gate.undecided()]
+
+    def _decisions(self, decided: list[tuple[NDArray[np.float64], FrameQuality]]) -> list[OnlineDecision]:
+        out = []
+        for pose, quality in decided:
+            stamp = self._stamps.pop(quality.index)
+            out.append(OnlineDecision(stamp, pose if quality.reliable else None, quality))
+        return out
 
 
 # --------------------------------------------------------------------------- files and the command

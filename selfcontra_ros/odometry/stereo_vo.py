@@ -71,6 +71,7 @@ from selfcontra_ros.matching.census import hamming
 __all__ = [
     "STATUSES",
     "FrameQuality",
+    "IsolationGate",
     "OdometryError",
     "OdometryResult",
     "StereoOdometry",
@@ -300,9 +301,7 @@ class VOParams:
             deviations and a 95th percentile of 7.5), and a car's speed
             changes little between two frames, so neighbouring steps
             average the noise out.
-        isolated_frames: offline (:func:`mark_isolated`, which
-            :func:`~selfcontra_ros.odometry.run.estimate_poses` calls after
-            the smoother), a reliable frame with no other reliable frame
+        isolated_frames: a reliable frame with no other reliable frame
             within this many frames before and after it is reported
             unreliable (``isolated``); its pose is kept (0: off). A frame
             that passes every check amid frames whose step length the
@@ -311,8 +310,12 @@ class VOParams:
             highway, tuning seeds 1-30 with and without a simulated 0.3 px
             offset, 2 frames take 42 of 965 reliable frames and 9 of their
             40 bad ones (more than 2 % off); held-out seeds 41-100, 53 of 860
-            and 17 of 23 (README). The node decides each frame as it arrives
-            and does not apply it.
+            and 17 of 23 (README). Offline :func:`mark_isolated` applies it
+            (:func:`~selfcontra_ros.odometry.run.estimate_poses`, after the
+            smoother); the node's
+            :class:`~selfcontra_ros.odometry.run.OnlineOdometry` applies it as
+            frames arrive (:class:`IsolationGate`), deciding a frame that
+            follows unreliable ones up to this many frames late.
         length_acceleration_m: the smoother's process noise: standard
             deviation of the change of the step length from one frame to the
             next, metres per frame (0.02: 2 m/s^2 at 10 Hz).
@@ -1797,6 +1800,7 @@ def mark_isolated(qualities: list[FrameQuality], params: VOParams | None = None)
 
     The first frame (the world's origin, exact) is never marked but counts as
     a reliable neighbour. Unchanged when ``isolated_frames`` is 0.
+    :class:`IsolationGate` makes the same decisions as frames arrive.
     """
     p = params or VOParams()
     reach = int(p.isolated_frames)
@@ -1809,15 +1813,83 @@ def mark_isolated(qualities: list[FrameQuality], params: VOParams | None = None)
     counts = total[np.minimum(index + reach + 1, reliable.size)] - total[np.maximum(index - reach, 0)] - reliable
     out = list(qualities)
     for k in np.flatnonzero(reliable & (counts == 0)):
-        if qualities[k].status == "first":
-            continue
-        out[k] = replace(
-            qualities[k],
-            status="isolated",
-            reliable=False,
-            message=f"no other reliable frame within {reach} frames before or after: its step length is in doubt",
-        )
+        if qualities[k].status != "first":
+            out[k] = _isolated(qualities[k], reach)
     return out
+
+
+def _isolated(quality: FrameQuality, reach: int) -> FrameQuality:
+    """``quality`` reported unreliable as a reliable frame with no reliable neighbour within ``reach`` frames."""
+    return replace(
+        quality,
+        status="isolated",
+        reliable=False,
+        message=f"no other reliable frame within {reach} frames before or after: its step length is in doubt",
+    )
+
+
+@dataclass
+class _Pending:
+    """A frame in :class:`IsolationGate`: its pose, quality and what the frames after it showed so far."""
+
+    pose: F64
+    quality: FrameQuality
+    waiting: bool  # reliable, but no reliable frame within reach before it: the frames after it decide
+    after: int = 0  # frames seen after it
+
+
+class IsolationGate:
+    """:func:`mark_isolated` as frames arrive: each frame's final reliability, in order, as soon as it is known.
+
+    A reliable frame with a reliable frame among the ``isolated_frames``
+    frames before it is decided at once; one without waits for up to as
+    many frames after it (the first reliable one decides it reliable;
+    none marks it ``isolated``). Frames behind a waiting one wait with it,
+    so that decisions come out in frame order. On a sequence of reliable
+    frames nothing waits; after a run of unreliable ones a frame waits at
+    most ``isolated_frames`` frames. :meth:`finish` decides the rest as
+    :func:`mark_isolated` does at a sequence's end.
+    """
+
+    def __init__(self, params: VOParams | None = None) -> None:
+        self._reach = max(int((params or VOParams()).isolated_frames), 0)
+        self._recent: deque[bool] = deque(maxlen=max(self._reach, 1))
+        self._queue: deque[_Pending] = deque()
+
+    def add(self, pose: F64, quality: FrameQuality) -> list[tuple[F64, FrameQuality]]:
+        """Take the next frame; return the frames (pose, final quality) now decided, oldest first."""
+        reliable = quality.reliable
+        for pending in self._queue:
+            if pending.waiting:
+                pending.after += 1
+                if reliable:
+                    pending.waiting = False
+                elif pending.after >= self._reach:
+                    pending.waiting = False
+                    pending.quality = _isolated(pending.quality, self._reach)
+        waits = reliable and self._reach > 0 and quality.status != "first" and not any(self._recent)
+        self._recent.append(reliable)
+        self._queue.append(_Pending(pose, quality, waits))
+        return self._decided()
+
+    def finish(self) -> list[tuple[F64, FrameQuality]]:
+        """The end of the sequence: every frame still waiting had no reliable frame after it."""
+        for pending in self._queue:
+            if pending.waiting:
+                pending.waiting = False
+                pending.quality = _isolated(pending.quality, self._reach)
+        return self._decided()
+
+    def undecided(self) -> list[int]:
+        """Indices (:attr:`FrameQuality.index`) of the frames still waiting, or queued behind one."""
+        return [pending.quality.index for pending in self._queue]
+
+    def _decided(self) -> list[tuple[F64, FrameQuality]]:
+        out = []
+        while self._queue and not self._queue[0].waiting:
+            pending = self._queue.popleft()
+            out.append((pending.pose, pending.quality))
+        return out
 
 
 def smooth_step_lengths(poses: F64, qualities: list[FrameQuality], params: VOParams | None = None) -> F64:

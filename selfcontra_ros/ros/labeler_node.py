@@ -1112,15 +1112,23 @@ class LabelerNode(Node):
         frame whose pose is unreliable is never labelled (it would make false
         labels, counted as the drop ``odometry_unreliable``); its depth,
         disparity and confidence do not depend on the pose and are published.
+        A reliable frame after unreliable ones is decided up to
+        ``VOParams.isolated_frames`` frames later (``OnlineOdometry``): its
+        view, and those behind it, wait in ``_awaiting_pose`` for it however
+        long that takes, and leave it when the decision is no.
         """
         assert self._odometry is not None
-        pose = self._odometry.add(stamp_ns, left, right)
-        if pose is None:
-            quality = self._odometry.last_quality
-            self._drop("odometry_unreliable", quality.message if quality is not None else "unreliable pose")
-            return False
-        self._poses.add(stamp_ns, pose)
-        return True
+        labelled = True
+        for decision in self._odometry.add(stamp_ns, left, right):
+            if decision.pose is not None:
+                self._poses.add(decision.stamp_ns, decision.pose)
+                continue
+            self._drop("odometry_unreliable", decision.quality.message or "unreliable pose")
+            if decision.stamp_ns == stamp_ns:
+                labelled = False
+            else:  # an earlier frame, whose view waits for this decision
+                self._awaiting_pose[:] = [v for v in self._awaiting_pose if v.key.stamp_ns != decision.stamp_ns]
+        return labelled
 
     def _session_for(self, left_info: Any, right_info: Any) -> LabelingSession | None:
         """The session of the camera the infos describe; a new one (logged) when the calibration changed.
@@ -1188,7 +1196,8 @@ class LabelerNode(Node):
         frame more than ``max_pose_gap`` s newer has arrived already (the pose
         stream stopped or lags too far): then it is looked up one last time
         (extrapolating at most ``max_pose_extrapolation`` s) and dropped when
-        that fails.
+        that fails. With ``pose_source: odometry`` a frame waits for the
+        odometry's decision instead, which always comes (``_odometry_pose``).
         """
         max_wait_ns = round(self._max_pose_gap * 1e9)
         while self._awaiting_pose:
@@ -1206,6 +1215,8 @@ class LabelerNode(Node):
                 view.pose = found.pose
                 self._tf_poses.discard_before(stamp)
             else:
+                if self._odometry is not None and stamp in self._odometry.undecided():
+                    return  # decided a few frames later, whatever the time between frames
                 newest_pose = self._poses.newest_ns
                 if newest_pose is None or newest_pose < stamp:
                     if waited_ns <= max_wait_ns:

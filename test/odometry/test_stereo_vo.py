@@ -188,18 +188,24 @@ def test_textureless_and_static_frames_are_flagged(street: Path, street_poses: t
     vo = OnlineOdometry(seq.camera)
     blank = np.full((HEIGHT, WIDTH), 128, np.uint8)
     frames = [seq[0], seq[1]]
-    assert vo.add(0, frames[0].left, frames[0].right) is not None
-    assert vo.add(1, blank, blank) is None
+
+    def decided_now(stamp: int, left: np.ndarray, right: np.ndarray) -> np.ndarray | None:
+        (decision,) = vo.add(stamp, left, right)  # every frame here has a reliable frame within 2 before it
+        assert decision.stamp_ns == stamp and vo.undecided() == []
+        return decision.pose
+
+    assert decided_now(0, frames[0].left, frames[0].right) is not None
+    assert decided_now(1, blank, blank) is None
     assert vo.last_quality is not None and vo.last_quality.status == "few_features"
     assert "texture" in vo.last_quality.message
     # The next frame is matched against frame 0 (the last reliable one) and is right again.
-    pose = vo.add(2, frames[1].left, frames[1].right)
+    pose = decided_now(2, frames[1].left, frames[1].right)
     assert pose is not None and vo.last_quality.reference == 0
     truth = seq.poses
     assert truth is not None
     assert np.linalg.norm(pose[:3, 3] - truth[1][:3, 3]) < 0.03
     # The same pair again: no motion, an identity step rather than jitter.
-    assert np.allclose(vo.add(3, frames[1].left, frames[1].right), pose)
+    assert np.allclose(decided_now(3, frames[1].left, frames[1].right), pose)
     assert vo.last_quality.status == "static" and vo.last_quality.reliable
 
 

@@ -14,6 +14,7 @@ from selfcontra_ros.datasets.synthetic import kitti_like_camera, write_sequence
 from selfcontra_ros.geometry import StereoCamera, invert_pose
 from selfcontra_ros.odometry.stereo_vo import (
     FrameQuality,
+    IsolationGate,
     StereoOdometry,
     VOParams,
     _Features,
@@ -519,6 +520,55 @@ def test_a_reliable_frame_among_unreliable_ones_is_marked_isolated() -> None:
     assert mark_isolated(qualities[:1], VOParams())[0].reliable
     assert [q.reliable for q in mark_isolated(qualities, VOParams(isolated_frames=3))] == [c == "R" for c in pattern]
     assert mark_isolated(qualities, VOParams(isolated_frames=0)) == qualities
+
+
+def _flagged(flags: NDArray[np.bool_], first: int) -> list[FrameQuality]:
+    """Frame qualities with the given reliability; frame ``first`` is the first frame (before it: no features)."""
+    out = []
+    for k, ok in enumerate(flags):
+        status = "first" if k == first else ("ok" if ok else "weak_scale") if k > first else "few_features"
+        out.append(FrameQuality(index=k, stamp=0.1 * k, status=status, reliable=k == first or (bool(ok) and k > first),
+                                features=500, stereo_matches=300))  # fmt: skip
+    return out
+
+
+@pytest.mark.parametrize("reach", [0, 1, 2, 3])
+def test_the_isolation_gate_decides_as_frames_arrive_what_mark_isolated_decides_at_the_end(reach: int) -> None:
+    """IsolationGate (the node's form of mark_isolated): the same decisions on random reliability patterns,
+    in frame order, each frame decided at most ``reach`` frames after it arrived."""
+    rng = np.random.default_rng(reach)
+    params = VOParams(isolated_frames=reach)
+    for _ in range(200):
+        n = int(rng.integers(1, 30))
+        flags = rng.random(n) < rng.uniform(0.1, 0.9)
+        qualities = _flagged(flags, first=int(rng.integers(0, 3)))
+        gate = IsolationGate(params)
+        decided: list[FrameQuality] = []
+        poses = [np.full((4, 4), float(k)) for k in range(n)]
+        for k, quality in enumerate(qualities):
+            out = gate.add(poses[k], quality)
+            assert all(pose is poses[q.index] for pose, q in out)  # each pose travels with its own quality
+            decided += [q for _, q in out]
+            assert len(decided) >= k + 1 - reach, "no frame waits longer than reach frames"
+            assert gate.undecided() == list(range(len(decided), k + 1))
+        decided += [q for _, q in gate.finish()]
+        assert gate.undecided() == []
+        assert decided == mark_isolated(qualities, params)
+
+
+def test_the_isolation_gate_holds_only_frames_after_an_unreliable_run() -> None:
+    """A run of reliable frames goes through at once; a reliable frame after two unreliable ones waits for the
+    next two frames, and the frames behind it wait with it."""
+    gate = IsolationGate(VOParams())
+    q = _flagged(np.array([1, 1, 1, 0, 0, 1, 0, 0, 1, 1], bool), first=0)
+    assert [len(gate.add(np.eye(4), q[k])) for k in range(5)] == [1, 1, 1, 1, 1]
+    assert gate.add(np.eye(4), q[5]) == [] and gate.undecided() == [5]
+    assert gate.add(np.eye(4), q[6]) == [] and gate.undecided() == [5, 6]
+    out = gate.add(np.eye(4), q[7])  # no reliable frame within 2 after frame 5 either: isolated
+    assert [(o.index, o.status) for _, o in out] == [(5, "isolated"), (6, "weak_scale"), (7, "weak_scale")]
+    assert gate.add(np.eye(4), q[8]) == [] and gate.undecided() == [8]
+    out = gate.add(np.eye(4), q[9])  # frame 9 is frame 8's reliable neighbour, and has frame 8 before it
+    assert [(o.index, o.status) for _, o in out] == [(8, "ok"), (9, "ok")]
 
 
 @pytest.mark.parametrize("gap", [1, 2])

@@ -456,7 +456,9 @@ def test_odometry_pose_source_labels_with_visual_odometry_poses(
     from selfcontra_ros.ros.conversions import image_to_numpy
 
     odometry = OnlineOdometry(frames.camera)
-    estimated = [odometry.add(frames.stamp_ns(k), frames.left[k], frames.right[k]) for k in range(FRAMES)]
+    decisions = [d for k in range(FRAMES) for d in odometry.add(frames.stamp_ns(k), frames.left[k], frames.right[k])]
+    assert [d.stamp_ns for d in decisions] == [frames.stamp_ns(k) for k in range(FRAMES)], "none waits here"
+    estimated = [d.pose for d in decisions]
     assert all(pose is not None for pose in estimated), "the odometry should be reliable on this sequence"
     matcher, labeler = load_params(params_file)
     session = LabelingSession(frames.camera, matcher, labeler)
@@ -485,26 +487,44 @@ def test_odometry_pose_source_labels_with_visual_odometry_poses(
     assert node.stats()["drops"].get("odometry_unreliable", 0) == 0
 
 
-def test_a_frame_the_odometry_cannot_pose_keeps_its_depth_and_is_not_labelled(
-    frames: Frames, params_file: Path, ros_node: Any, labeler_node: Callable[..., Any]
+@pytest.mark.parametrize(
+    ("blank", "posed"),
+    [
+        ({3, 4, 6, 7}, [0, 1, 2, 8, 9, 10, 11]),  # frame 5: isolated, decided at frame 7
+        ({3, 4, 6}, [0, 1, 2, 5, 7, 8, 9, 10, 11]),  # frame 5: reliable, decided at frame 7 with frame 6 behind it
+    ],
+)
+def test_frames_the_odometry_cannot_pose_keep_their_depth_and_are_not_labelled(
+    blank: set[int], posed: list[int], params_file: Path, ros_node: Any, labeler_node: Callable[..., Any]
 ) -> None:
-    """pose_source odometry: a textureless frame has no reliable pose; its depth and disparity go out, no labels."""
+    """pose_source odometry over blank frames (a lens cap): no reliable pose, so their depth and disparity go
+    out and they are not labelled. Frame 5, after two blank frames, waits two frames for the odometry's
+    decision (mark_isolated's rule, 2 s at 1 Hz, beyond ``max_pose_gap``): ``isolated`` when two more blank
+    frames follow, reliable and labelled when a reliable one does. The labels equal a session fed the frames
+    the odometry decided reliable, in order."""
     from selfcontra_ros.odometry.run import OnlineOdometry
     from selfcontra_ros.ros.conversions import image_to_numpy
 
-    blank = 4  # a lens cap: no features, so no pose
-    left = [np.full_like(im, 128) if k == blank else im for k, im in enumerate(frames.left)]
-    right = [np.full_like(im, 128) if k == blank else im for k, im in enumerate(frames.right)]
-    odometry = OnlineOdometry(frames.camera)
-    estimated = [odometry.add(frames.stamp_ns(k), left[k], right[k]) for k in range(FRAMES)]
-    unposed = [k for k, pose in enumerate(estimated) if pose is None]
-    assert blank in unposed and len(unposed) < FRAMES // 2, unposed
+    n = 12
+    scene = make_scene("street", 2, 320, 96, frames=n)
+    rendered = [scene.render(k) for k in range(n)]
+    grey = np.full_like(rendered[0].left, 128)
+    left = [grey if k in blank else f.left for k, f in enumerate(rendered)]
+    right = [grey if k in blank else f.right for k, f in enumerate(rendered)]
+    stamps = [STAMP0_NS + k * 10 * PERIOD_NS for k in range(n)]  # 1 Hz: a decision 2 frames late is 2 s late
+    odometry = OnlineOdometry(scene.camera)
+    decisions = [d for k in range(n) for d in odometry.add(stamps[k], left[k], right[k])]
+    status = {stamps.index(d.stamp_ns): d.quality.status for d in decisions}
+    assert [stamps.index(d.stamp_ns) for d in decisions if d.pose is not None] == posed, status
+    isolated = [k for k, st in status.items() if st == "isolated"]
+    assert isolated == ([5] if 7 in blank else []), status
     matcher, labeler = load_params(params_file)
-    session = LabelingSession(frames.camera, matcher, labeler)
+    session = LabelingSession(scene.camera, matcher, labeler)
     expected = []
-    for k, pose in enumerate(estimated):
-        if pose is not None:
-            expected += session.process(left[k], right[k], pose, stamp=frames.stamp_ns(k) / 1e9, key=k).labelled
+    for d in decisions:
+        if d.pose is not None:
+            k = stamps.index(d.stamp_ns)
+            expected += session.process(left[k], right[k], d.pose, stamp=stamps[k] / 1e9, key=k).labelled
     assert expected, "some views should be labelled"
 
     node = labeler_node(pose_source="odometry")
@@ -512,21 +532,20 @@ def test_a_frame_the_odometry_cannot_pose_keeps_its_depth_and_is_not_labelled(
     recorder = Recorder(ros_node)
     subscribed = lambda: feeder.left.get_subscription_count() >= 1 and recorder.matched()  # noqa: E731
     assert spin_nodes([node, ros_node], subscribed, WAIT_S)
-    for k in range(FRAMES):
-        stamp = frames.stamp_ns(k)
-        feeder.infos(frames.camera, stamp)
-        feeder.images(left[k], right[k], stamp)
+    for k in range(n):  # one frame at a time, as a camera sends them (12 at once overflow queue_size 10)
+        feeder.infos(scene.camera, stamps[k])
+        feeder.images(left[k], right[k], stamps[k])
+        assert spin_nodes([node, ros_node], lambda k=k: recorder.count(topics.DEPTH) > k, WAIT_S), k
     done = spin_nodes(
         [node, ros_node],
-        lambda: recorder.count(topics.LABELS) >= len(expected) and recorder.count(topics.DEPTH) >= FRAMES,
+        lambda: recorder.count(topics.LABELS) >= len(expected) and recorder.count(topics.DEPTH) >= n,
         WAIT_S,
     )
     assert done, (recorder.stats, node.stats())
-    assert [stamp_ns(m) for m in recorder.received[topics.DEPTH]] == [frames.stamp_ns(k) for k in range(FRAMES)]
-    assert [stamp_ns(m) for m in recorder.received[topics.DISPARITY]] == [frames.stamp_ns(k) for k in range(FRAMES)]
+    assert [stamp_ns(m) for m in recorder.received[topics.DEPTH]] == stamps
+    assert [stamp_ns(m) for m in recorder.received[topics.DISPARITY]] == stamps
     received = recorder.received[topics.LABELS]
-    assert [stamp_ns(m) for m in received] == [frames.stamp_ns(r.key) for r in expected]
-    assert not {stamp_ns(m) for m in received} & {frames.stamp_ns(k) for k in unposed}
+    assert [stamp_ns(m) for m in received] == [stamps[r.key] for r in expected]
     for msg, result in zip(received, expected, strict=True):
         assert np.array_equal(image_to_numpy(msg), result.labels)
-    assert node.stats()["drops"].get("odometry_unreliable", 0) == len(unposed)
+    assert node.stats()["drops"].get("odometry_unreliable", 0) == len(blank) + len(isolated)
