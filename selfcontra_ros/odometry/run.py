@@ -28,7 +28,7 @@ import csv
 import itertools
 import logging
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -45,7 +45,7 @@ from selfcontra_ros.bags.stereo_input import ImageError, StereoImages, StereoInp
 from selfcontra_ros.bags.sync import StampSynchronizer
 from selfcontra_ros.bags.tf import TFBuffer
 from selfcontra_ros.datasets.kitti import OdometrySequence, StereoScene, open_sequence, write_poses
-from selfcontra_ros.geometry import StereoCamera
+from selfcontra_ros.geometry import StereoCamera, invert_pose
 from selfcontra_ros.odometry.metrics import SHORT_LENGTHS, OdometryMetrics, evaluate_odometry
 from selfcontra_ros.odometry.stereo_vo import (
     FrameQuality,
@@ -54,6 +54,7 @@ from selfcontra_ros.odometry.stereo_vo import (
     StereoOdometry,
     VOParams,
     mark_isolated,
+    smooth_step_lengths,
 )
 from selfcontra_ros.reports import write_json
 from selfcontra_ros.ros.conversions import stamp_to_nanoseconds
@@ -77,6 +78,8 @@ __all__ = [
 _LOG = logging.getLogger(__name__)
 _Triple = tuple[float, NDArray[np.uint8], NDArray[np.uint8]]
 _NS_PER_S = 1_000_000_000
+#: Frames (before the newest) over which :class:`OnlineOdometry` smooths the step lengths.
+_SMOOTHING_SPAN = 60
 _LEFT, _RIGHT = "left", "right"
 
 
@@ -427,20 +430,34 @@ class OnlineOdometry:
     """Poses for the labeler node when no pose topic is configured (``pose_source: odometry``).
 
     ``add(stamp_ns, left, right)`` returns the frames whose pose is now
-    decided, oldest first: each frame's pose ``T_world_left``, or None when
-    it is unreliable (the node then skips it, as for a missing pose). The
-    decisions are those of the offline :func:`estimate_poses` apart from the
-    step-length smoother: a reliable frame alone among unreliable ones is
-    reported ``isolated`` (:class:`~selfcontra_ros.odometry.stereo_vo.IsolationGate`),
-    so such a frame, and the frames behind it, are decided up to
-    ``VOParams.isolated_frames`` frames later; every other frame at once.
+    final, oldest first: each frame's pose ``T_world_left``, or None when it
+    is unreliable (the node then skips it, as for a missing pose). The
+    decisions are those of the offline :func:`estimate_poses` as far as the
+    frames seen so far allow:
+
+    * a frame's pose comes once ``VOParams.smoothing_lag_frames`` frames
+      after it have arrived; its step from the frame before is the
+      measured one with the length smoothed over the frames up to then
+      (the last ``_SMOOTHING_SPAN`` frames; :func:`smooth_step_lengths`,
+      which ``estimate_poses`` runs over the whole sequence);
+    * a reliable frame alone among unreliable ones is reported ``isolated``
+      (:class:`~selfcontra_ros.odometry.stereo_vo.IsolationGate`), decided
+      up to ``VOParams.isolated_frames`` frames later.
+
+    :meth:`finish` releases the frames still held at the end of a stream.
     :attr:`last_quality` is the newest frame's quality as measured.
     """
 
     def __init__(self, camera: StereoCamera, params: VOParams | None = None) -> None:
         self._vo = StereoOdometry(camera, params)
-        self._gate = IsolationGate(self._vo.params)
-        self._stamps: dict[int, int] = {}  # frame index -> stamp, of the frames not decided yet
+        p = self._vo.params
+        self._gate = IsolationGate(p)
+        self._lag = int(p.smoothing_lag_frames) if p.smooth_lengths else 0
+        self._stamps: dict[int, int] = {}  # frame index -> stamp, of the frames not released yet
+        self._decided: deque[FrameQuality] = deque()  # decided by the gate, waiting for the lag
+        # Index and pose of the last frame released, and of the last reliable one (the anchor of the next).
+        self._released: tuple[int, NDArray[np.float64]] | None = None
+        self._anchor: tuple[int, NDArray[np.float64]] | None = None
         self.last_quality: FrameQuality | None = None
 
     @property
@@ -449,25 +466,59 @@ class OnlineOdometry:
         return self._vo.camera
 
     def add(self, stamp_ns: int, left: NDArray[np.uint8], right: NDArray[np.uint8]) -> list[OnlineDecision]:
-        """Take a new pair; return the decisions now final (this frame's, earlier ones', or none yet)."""
+        """Take a new pair; return the decisions now final (earlier frames', this frame's, or none yet)."""
         result = self._vo.add(left, right, stamp_ns / _NS_PER_S)
         self.last_quality = result.quality
         self._stamps[result.quality.index] = int(stamp_ns)
-        return self._decisions(self._gate.add(result.pose, result.quality))
+        self._decided.extend(quality for _, quality in self._gate.add(result.pose, result.quality))
+        return self._release(result.quality.index - self._lag)
 
     def finish(self) -> list[OnlineDecision]:
-        """The end of the stream: decide the frames still waiting (as :func:`mark_isolated` at a sequence's end)."""
-        return self._decisions(self._gate.finish())
+        """The end of the stream: decide and release every frame still held (as :func:`estimate_poses` would)."""
+        self._decided.extend(quality for _, quality in self._gate.finish())
+        return self._release(len(self._vo.poses) - 1)
 
     def undecided(self) -> list[int]:
         """Stamps of the frames added whose decision has not come out yet."""
-        return [self._stamps[index] for index in self._gate.undecided()]
+        return sorted(self._stamps.values())
 
-    def _decisions(self, decided: list[tuple[NDArray[np.float64], FrameQuality]]) -> list[OnlineDecision]:
-        out = []
-        for pose, quality in decided:
-            stamp = self._stamps.pop(quality.index)
-            out.append(OnlineDecision(stamp, pose if quality.reliable else None, quality))
+    @property
+    def max_hold(self) -> int:
+        """The most frames a frame waits for its decision (the smoothing lag, or the isolation reach)."""
+        return max(self._lag, int(self._vo.params.isolated_frames))
+
+    def _release(self, last: int) -> list[OnlineDecision]:
+        """Release the decided frames up to index ``last``, with their smoothed poses."""
+        out: list[OnlineDecision] = []
+        if not self._decided or self._decided[0].index > last:
+            return out
+        vo = self._vo
+        newest = len(vo.poses) - 1
+        # A frame's pose is the anchor's (the last reliable frame released) and the measured motion since, with
+        # the step lengths smoothed: the odometry still rewrites the guessed poses of unreliable frames between
+        # them when a measured frame follows, so they are not chained through. After a failure longer than the
+        # smoothing span the anchor is the last frame released instead.
+        anchor = self._anchor
+        if anchor is None or anchor[0] < newest - _SMOOTHING_SPAN:
+            anchor = self._released
+        first = self._decided[0].index
+        base = max(0, min(first - 1 if anchor is None else anchor[0], newest - _SMOOTHING_SPAN))
+        # The smoother sees the frames base..newest; references are renumbered from base (further back: none).
+        qualities = [replace(q, reference=q.reference - base) for q in vo.qualities[base:]]
+        smoothed = smooth_step_lengths(np.stack(vo.poses[base:]), qualities, vo.params)
+        while self._decided and self._decided[0].index <= last:
+            quality = self._decided.popleft()
+            k = quality.index
+            if anchor is None:  # frame 0, the world's origin
+                pose = vo.poses[k]
+            else:
+                assert base <= anchor[0] < k
+                pose = anchor[1] @ invert_pose(smoothed[anchor[0] - base]) @ smoothed[k - base]
+            self._released = (k, pose)
+            if quality.reliable or anchor is None:
+                self._anchor = anchor = (k, pose)
+            stamp = self._stamps.pop(k)
+            out.append(OnlineDecision(stamp, pose.copy() if quality.reliable else None, quality))
         return out
 
 

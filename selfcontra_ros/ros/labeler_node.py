@@ -1051,7 +1051,8 @@ class LabelerNode(Node):
             self._release_views()
             return
         self._awaiting_pose.append(_View(session, ViewKey(stamp_ns, frame_id), disparity, frame=frame))
-        if len(self._awaiting_pose) > self._queue_size:
+        hold = self._odometry.max_hold if self._odometry is not None else 0  # views wait for the odometry's lag
+        if len(self._awaiting_pose) > self._queue_size + hold:
             dropped = self._awaiting_pose.pop(0)
             self._drop("pose_wait_overflow", f"frame at {dropped.key.stamp_ns} ns waited too long for its pose")
         self._release_views()
@@ -1112,10 +1113,11 @@ class LabelerNode(Node):
         frame whose pose is unreliable is never labelled (it would make false
         labels, counted as the drop ``odometry_unreliable``); its depth,
         disparity and confidence do not depend on the pose and are published.
-        A reliable frame after unreliable ones is decided up to
-        ``VOParams.isolated_frames`` frames later (``OnlineOdometry``): its
-        view, and those behind it, wait in ``_awaiting_pose`` for it however
-        long that takes, and leave it when the decision is no.
+        A frame's decision comes ``VOParams.smoothing_lag_frames`` frames
+        later (its step length smoothed with the frames after it; up to
+        ``isolated_frames`` after unreliable ones: ``OnlineOdometry``): its
+        view waits in ``_awaiting_pose`` for it however long that takes, and
+        leaves it when the decision is no.
         """
         assert self._odometry is not None
         labelled = True

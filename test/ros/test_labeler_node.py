@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 import signal
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -448,64 +448,26 @@ def test_external_disparity_mode_labels_the_given_disparities(
     check_outputs(recorder, frames, params_file, flushed=False, external=True)
 
 
-def test_odometry_pose_source_labels_with_visual_odometry_poses(
-    frames: Frames, params_file: Path, ros_node: Any, labeler_node: Callable[..., Any]
-) -> None:
-    """pose_source odometry: no pose topic; the labels equal a session fed the package's odometry poses."""
-    from selfcontra_ros.odometry.run import OnlineOdometry
-    from selfcontra_ros.ros.conversions import image_to_numpy
-
-    odometry = OnlineOdometry(frames.camera)
-    decisions = [d for k in range(FRAMES) for d in odometry.add(frames.stamp_ns(k), frames.left[k], frames.right[k])]
-    assert [d.stamp_ns for d in decisions] == [frames.stamp_ns(k) for k in range(FRAMES)], "none waits here"
-    estimated = [d.pose for d in decisions]
-    assert all(pose is not None for pose in estimated), "the odometry should be reliable on this sequence"
-    matcher, labeler = load_params(params_file)
-    session = LabelingSession(frames.camera, matcher, labeler)
-    expected = []
-    for k in range(FRAMES):
-        pose = estimated[k]
-        assert pose is not None
-        expected += session.process(frames.left[k], frames.right[k], pose, stamp=frames.stamp_ns(k) / 1e9).labelled
-
-    node = labeler_node(pose_source="odometry")
-    feeder = Feeder(ros_node)
-    recorder = Recorder(ros_node)
-    subscribed = lambda: feeder.left.get_subscription_count() >= 1 and recorder.matched()  # noqa: E731
-    assert spin_nodes([node, ros_node], subscribed, WAIT_S)
-    assert feeder.pose.get_subscription_count() == 0, "no pose topic with pose_source odometry"
-    for k in range(FRAMES):
-        stamp = frames.stamp_ns(k)
-        feeder.infos(frames.camera, stamp)
-        feeder.images(frames.left[k], frames.right[k], stamp)
-    done = spin_nodes([node, ros_node], lambda: recorder.count(topics.LABELS) >= FRAMES - DELAY, WAIT_S)
-    assert done, (recorder.stats, node.stats())
-    received = recorder.received[topics.LABELS]
-    assert [stamp_ns(m) for m in received] == [frames.stamp_ns(k) for k in range(FRAMES - DELAY)]
-    for k, msg in enumerate(received):
-        assert np.array_equal(image_to_numpy(msg), expected[k].labels), f"labels of frame {k} differ"
-    assert node.stats()["drops"].get("odometry_unreliable", 0) == 0
-
-
 @pytest.mark.parametrize(
     ("blank", "posed"),
     [
-        ({3, 4, 6, 7}, [0, 1, 2, 8, 9, 10, 11]),  # frame 5: isolated, decided at frame 7
-        ({3, 4, 6}, [0, 1, 2, 5, 7, 8, 9, 10, 11]),  # frame 5: reliable, decided at frame 7 with frame 6 behind it
+        (set(), range(11)),  # every frame reliable: each comes out smoothing_lag_frames (5) frames later
+        ({3, 4, 6, 7}, [0, 1, 2, *range(8, 11)]),  # frame 5: isolated, decided at frame 7
+        ({3, 4, 6}, [0, 1, 2, 5, *range(7, 11)]),  # frame 5: reliable, frame 6 behind it
     ],
 )
-def test_frames_the_odometry_cannot_pose_keep_their_depth_and_are_not_labelled(
-    blank: set[int], posed: list[int], params_file: Path, ros_node: Any, labeler_node: Callable[..., Any]
+def test_odometry_pose_source_labels_the_frames_the_odometry_poses(
+    blank: set[int], posed: Sequence[int], params_file: Path, ros_node: Any, labeler_node: Callable[..., Any]
 ) -> None:
-    """pose_source odometry over blank frames (a lens cap): no reliable pose, so their depth and disparity go
-    out and they are not labelled. Frame 5, after two blank frames, waits two frames for the odometry's
-    decision (mark_isolated's rule, 2 s at 1 Hz, beyond ``max_pose_gap``): ``isolated`` when two more blank
-    frames follow, reliable and labelled when a reliable one does. The labels equal a session fed the frames
-    the odometry decided reliable, in order."""
+    """pose_source odometry: no pose topic; frames come out 5 frames late (their step lengths smoothed over
+    the frames after them). Blank frames (a lens cap) have no reliable pose: their depth and disparity go out
+    and they are not labelled. Frame 5, after two blank frames, is ``isolated`` when two more blank frames
+    follow, reliable when a reliable one does. At 1 Hz the views wait 5 s for their decision, beyond
+    ``max_pose_gap``. The labels equal a session fed the frames the odometry decided reliable, in order."""
     from selfcontra_ros.odometry.run import OnlineOdometry
     from selfcontra_ros.ros.conversions import image_to_numpy
 
-    n = 12
+    n = 16
     scene = make_scene("street", 2, 320, 96, frames=n)
     rendered = [scene.render(k) for k in range(n)]
     grey = np.full_like(rendered[0].left, 128)
@@ -515,7 +477,8 @@ def test_frames_the_odometry_cannot_pose_keep_their_depth_and_are_not_labelled(
     odometry = OnlineOdometry(scene.camera)
     decisions = [d for k in range(n) for d in odometry.add(stamps[k], left[k], right[k])]
     status = {stamps.index(d.stamp_ns): d.quality.status for d in decisions}
-    assert [stamps.index(d.stamp_ns) for d in decisions if d.pose is not None] == posed, status
+    assert len(decisions) == n - odometry.max_hold == 11
+    assert [stamps.index(d.stamp_ns) for d in decisions if d.pose is not None] == list(posed), status
     isolated = [k for k, st in status.items() if st == "isolated"]
     assert isolated == ([5] if 7 in blank else []), status
     matcher, labeler = load_params(params_file)
@@ -532,6 +495,7 @@ def test_frames_the_odometry_cannot_pose_keep_their_depth_and_are_not_labelled(
     recorder = Recorder(ros_node)
     subscribed = lambda: feeder.left.get_subscription_count() >= 1 and recorder.matched()  # noqa: E731
     assert spin_nodes([node, ros_node], subscribed, WAIT_S)
+    assert feeder.pose.get_subscription_count() == 0, "no pose topic with pose_source odometry"
     for k in range(n):  # one frame at a time, as a camera sends them (12 at once overflow queue_size 10)
         feeder.infos(scene.camera, stamps[k])
         feeder.images(left[k], right[k], stamps[k])
