@@ -322,12 +322,15 @@ class VOParams:
             step length smoothed (:func:`smooth_step_lengths`) over the
             frames up to then: a fixed-lag form of the offline smoother
             (``smooth_lengths`` off: the measured lengths, without delay).
-            Measured on the synthetic highway, tuning seeds 1-30 (bad
-            reliable frames, more than 2 % off, of 463; translation mean):
-            none (the node before) 19, 1.08 %; lag 0 (filter only) 15;
-            2: 5; 3: 3; 5: 3, 0.86 %; 10: 2; the whole sequence (offline)
-            2, 0.83 % (README, ninth round). Each frame of lag delays the
-            node's labels by one frame.
+            Chosen on the synthetic highway's tuning seeds 1-30 (bad
+            reliable frames, more than 2 % off, of 463, and translation
+            mean, replayed from one run's poses): lag 0 (the filter alone)
+            16, 1.01 %; 1: 10; 2: 5; 3: 3, 0.86 %; 5: 3, 0.83 %; 10: 2,
+            0.81 %; the whole sequence (offline) 2, 0.80 %. The node itself
+            with 5 (README, ninth round): 5 of 463, 0.83 %, against 20 of
+            484 and 1.25 % before (no smoothing, no ``isolated``); held-out
+            seeds 41-100 8 of 750 (48 of 800 before). Each frame of lag
+            delays the node's labels by one frame.
         length_acceleration_m: the smoother's process noise: standard
             deviation of the change of the step length from one frame to the
             next, metres per frame (0.02: 2 m/s^2 at 10 Hz).
