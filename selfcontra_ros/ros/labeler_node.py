@@ -44,6 +44,14 @@ algorithm is one view.
   from the robot's own pose topic, or ``odometry``. The decision when a frame
   has its pose is :func:`tf_pose_decision`; a frame waits while TF may still
   reach its stamp, like a frame waiting for a pose topic.
+* ``pose_source: odometry`` estimates the poses with the package's stereo
+  odometry (:class:`~selfcontra_ros.odometry.run.OnlineOdometry`, on the
+  subscription thread): a frame has its pose once
+  ``VOParams.smoothing_lag_frames`` (5) more frames have arrived, its step
+  length smoothed with them, and a reliable frame alone among unreliable
+  ones is reported ``isolated``, as the offline ``estimate_poses`` does. A
+  frame without a reliable pose keeps its depth, disparity and confidence
+  and is not labelled (``odometry_unreliable``).
 
 **Synchronisation.** Images and camera infos are grouped by header stamp
 (left image first; ``sync: exact`` needs equal stamps, ``approximate`` accepts
