@@ -34,7 +34,7 @@ default) says::
     comma-separated ``FROM:=TO`` rules, the relative names of ``selfcontra
     label BAG --remap``: the labeler's remappings (a compressed topic follows
     its base name), and where the player finds the left camera.
-``pose_source`` (``""``: the parameter file's; ``pose``; ``tf``), ``world_frame``, ``camera_frame``
+``pose_source`` (``""``: the parameter file's; ``pose``; ``tf``; ``odometry``), ``world_frame``, ``camera_frame``
     with ``tf`` the poses come from the bag's ``/tf`` and ``/tf_static``. By
     default (``tf_in_labeler:=false``) the player composes them itself and
     publishes the left camera's PoseStamped on ``<namespace>/pose``, which the
@@ -42,7 +42,9 @@ default) says::
     PyPI wheels have neither ``tf2_msgs`` nor ``tf2_ros``). With
     ``tf_in_labeler:=true`` the player publishes ``/tf`` as recorded and the
     labeler reads it through tf2_ros (``pose_source: tf``): a ROS 2 install
-    with both.
+    with both. With ``odometry`` the labeler estimates the poses from the
+    stereo images itself (a bag without poses; the labeler node's
+    ``pose_source: odometry``).
 
 Without ROS 2 launch (e.g. a plain virtual environment with the rclpy
 wheels), start the two processes by hand::
@@ -80,7 +82,11 @@ ROBOT_ARGUMENTS: dict[str, tuple[str, str]] = {
     "sync": ("", "labeler image synchronisation: exact or approximate"),
     "slop": ("", "labeler: largest left/right stamp difference with sync approximate, seconds"),
     "remaps": ("", "comma-separated FROM:=TO rules, as selfcontra label --remap"),
-    "pose_source": ("", "pose: the bag's pose topic; tf: poses from the bag's /tf and /tf_static"),
+    "pose_source": (
+        "",
+        "pose: the bag's pose topic; tf: poses from the bag's /tf and /tf_static; "
+        "odometry: the labeler's own stereo odometry",
+    ),
     "tf_in_labeler": ("false", "pose_source tf: the labeler reads TF with tf2_ros (else the player converts it)"),
     "world_frame": ("", "pose_source tf: the fixed frame, e.g. odom"),
     "camera_frame": ("", "pose_source tf: the left camera frame (empty: the left camera_info's frame id)"),
@@ -131,11 +137,14 @@ def node_settings(
         labeler["slop"] = float(v["slop"])
     player: dict[str, Any] = {"wait_for_subscribers": _LABELER_INPUTS}
     source = v["pose_source"]
-    if source not in ("", "pose", "tf"):
-        raise ValueError(f"launch argument pose_source:={source!r} must be pose or tf (or empty)")
+    if source not in ("", "pose", "tf", "odometry"):
+        raise ValueError(f"launch argument pose_source:={source!r} must be pose, tf or odometry (or empty)")
     frames = {"world_frame": v["world_frame"], "camera_frame": v["camera_frame"]}
     if source == "pose":
         labeler["pose_source"] = "pose"
+    elif source == "odometry":  # the labeler estimates the poses from the images: no pose subscription
+        labeler["pose_source"] = "odometry"
+        player["wait_for_subscribers"] = _LABELER_INPUTS - 1
     elif source == "tf" and _boolean("tf_in_labeler", v["tf_in_labeler"]):
         labeler.update(pose_source="tf", **frames)
         # No pose subscription, but the labeler's TF listener subscribes to /tf and /tf_static.

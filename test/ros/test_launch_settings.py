@@ -64,11 +64,17 @@ def test_tf_read_by_the_labeler(launch: ModuleType) -> None:
     assert "pose_source" not in player  # /tf played as recorded
 
 
+def test_odometry_poses_estimated_by_the_labeler(launch: ModuleType) -> None:
+    player, labeler, _ = launch.node_settings({"pose_source": "odometry"}, "/stereo")
+    assert labeler == {"pose_source": "odometry"}
+    assert player == {"wait_for_subscribers": 4}  # images and camera infos; no pose subscription
+
+
 @pytest.mark.parametrize(
     ("values", "message"),
     [
         ({"rectify": "yes"}, "rectify:='yes' must be true or false"),
-        ({"pose_source": "gps"}, "must be pose or tf"),
+        ({"pose_source": "gps"}, "must be pose, tf or odometry"),
         ({"remaps": "left/image_raw=cam"}, "is not FROM:=TO"),
     ],
 )
