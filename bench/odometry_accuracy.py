@@ -68,7 +68,7 @@ from selfcontra_ros.datasets.kitti import open_sequence
 from selfcontra_ros.datasets.synthetic import make_scene
 from selfcontra_ros.geometry import StereoCamera
 from selfcontra_ros.odometry.metrics import evaluate_odometry, path_lengths
-from selfcontra_ros.odometry.run import second_pass_params
+from selfcontra_ros.odometry.run import OnlineOdometry, second_pass_params
 from selfcontra_ros.odometry.stereo_vo import StereoOdometry, VOParams, _Features, mark_isolated
 
 DEFAULT_KITTI = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "kitti_odometry"
@@ -380,6 +380,33 @@ COLUMNS = (
 )
 
 
+def run_online(
+    name: str, camera: StereoCamera, frames: Frames, truth: NDArray[np.float64], params: VOParams
+) -> dict[str, Any]:
+    """The labeler node's odometry (:class:`OnlineOdometry`: one pass, step lengths smoothed with
+    ``smoothing_lag_frames`` frames after each, ``isolated`` decided online) over one sequence.
+
+    Bad reliable frames as in :func:`run_sequence`; the first frame is not counted as reliable.
+    """
+    online = OnlineOdometry(camera, params)
+    started = time.perf_counter()
+    decisions = [d for k, (left, right, _) in enumerate(frames) for d in online.add(k, left, right)]
+    decisions += online.finish()
+    elapsed = time.perf_counter() - started
+    poses = np.stack([d.chained for d in decisions])
+    reliable = np.array([d.pose is not None for d in decisions])
+    reliable[0] = False
+    steps = step_errors(poses, truth)
+    return {
+        "sequence": name,
+        "frames": len(frames),
+        "translation_pct": evaluate_odometry(poses, truth).translation_error_pct,
+        "reliable": int(reliable.sum()),
+        "bad_reliable": int((reliable & (steps > BAD_STEP)).sum()),
+        "ms_per_frame": 1000.0 * elapsed / len(frames),
+    }
+
+
 def _cell(value: Any, fmt: str) -> str:
     if isinstance(value, float) and math.isnan(value):
         return "-"
@@ -497,6 +524,10 @@ def main(argv: list[str] | None = None) -> int:
         "--oracle", choices=ORACLES, default="none", help="take features away by the ground truth before the "
         "odometry sees them (synthetic only): static = not on moving vehicles, stereo = no gross disparity error"
     )  # fmt: skip
+    parser.add_argument(
+        "--online", action="store_true", help="the labeler node's odometry (OnlineOdometry: one pass, "
+        "fixed-lag smoothing, isolated frames decided as frames arrive) instead of estimate_poses' two passes"
+    )  # fmt: skip
     args = parser.parse_args(argv)
     if args.stereo_bias:
         print(
@@ -508,6 +539,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.kitti == "":
         args.kitti = None
     params = VOParams(**parse_overrides(args.set))
+    if args.online:
+        return _main_online(args, params)
     rows = []
     for name, camera, frames, truth, disparities in _sequences(args):
         row = run_sequence(name, camera, frames, truth, params, args.oracle, disparities)
@@ -546,6 +579,30 @@ def main(argv: list[str] | None = None) -> int:
     overrides = {k: v for k, v in parse_overrides(args.set).items()}
     print(json.dumps({"params": dataclasses.asdict(params), "overrides": overrides, "sequences": rows,
                       "summary": summary, "scale_by_disparity": binned}))  # fmt: skip
+    return 0
+
+
+def _main_online(args: argparse.Namespace, params: VOParams) -> int:
+    """``--online``: per sequence and per scene (mean +- std, median, worst, above 2 %), then one JSON line."""
+    rows = []
+    for name, camera, frames, truth, _ in _sequences(args):
+        row = run_online(name, camera, frames, truth, params)
+        rows.append(row)
+        print(f"{name}: {row['translation_pct']:.2f} %, {row['reliable']} reliable, {row['bad_reliable']} bad, "
+              f"{row['ms_per_frame']:.0f} ms/frame", file=sys.stderr, flush=True)  # fmt: skip
+    summary: dict[str, Any] = {}
+    for scene in sorted({r["sequence"].split("/")[0] for r in rows}):
+        group = [r for r in rows if r["sequence"].split("/")[0] == scene]
+        t = np.array([r["translation_pct"] for r in group])
+        summary[scene] = {"mean": float(t.mean()), "std": float(t.std()), "median": float(np.median(t)),
+                          "worst": float(t.max()), "above_2pct": int((t > 2.0).sum()),
+                          "bad_reliable": sum(r["bad_reliable"] for r in group),
+                          "reliable": sum(r["reliable"] for r in group)}  # fmt: skip
+        s = summary[scene]
+        print(f"{scene} (online): translation {s['mean']:.2f} +- {s['std']:.2f} % (median {s['median']:.2f}, "
+              f"worst {s['worst']:.2f}, above 2 %: {s['above_2pct']}), bad reliable {s['bad_reliable']} / "
+              f"{s['reliable']}")  # fmt: skip
+    print(json.dumps({"online": True, "params": dataclasses.asdict(params), "sequences": rows, "summary": summary}))
     return 0
 
 

@@ -419,11 +419,16 @@ def estimate_bag_poses(
 
 @dataclass(frozen=True)
 class OnlineDecision:
-    """The final decision on one frame of :class:`OnlineOdometry`: ``pose`` (4x4, metres) or None when unreliable."""
+    """The final decision on one frame of :class:`OnlineOdometry`: ``pose`` (4x4, metres) or None when unreliable.
+
+    ``chained`` is the pose the online chain carries for the frame: ``pose`` when reliable, else a guess
+    (for scoring a whole sequence; never to be labelled with).
+    """
 
     stamp_ns: int
     pose: NDArray[np.float64] | None
     quality: FrameQuality
+    chained: NDArray[np.float64]
 
 
 class OnlineOdometry:
@@ -438,7 +443,8 @@ class OnlineOdometry:
     * a frame's pose comes once ``VOParams.smoothing_lag_frames`` frames
       after it have arrived; its step from the frame before is the
       measured one with the length smoothed over the frames up to then
-      (the last ``_SMOOTHING_SPAN`` frames; :func:`smooth_step_lengths`,
+      (at least the last ``_SMOOTHING_SPAN`` frames, back to the last reliable frame released within them;
+      :func:`smooth_step_lengths`,
       which ``estimate_poses`` runs over the whole sequence);
     * a reliable frame alone among unreliable ones is reported ``isolated``
       (:class:`~selfcontra_ros.odometry.stereo_vo.IsolationGate`), decided
@@ -496,13 +502,13 @@ class OnlineOdometry:
         newest = len(vo.poses) - 1
         # A frame's pose is the anchor's (the last reliable frame released) and the measured motion since, with
         # the step lengths smoothed: the odometry still rewrites the guessed poses of unreliable frames between
-        # them when a measured frame follows, so they are not chained through. After a failure longer than the
-        # smoothing span the anchor is the last frame released instead.
+        # them when a measured frame follows, so they are not chained through. Once the last reliable frame lies
+        # more than the smoothing span back (a failure of about span - lag frames), the anchor is the last frame
+        # released instead, so the smoother's window stays bounded.
         anchor = self._anchor
         if anchor is None or anchor[0] < newest - _SMOOTHING_SPAN:
             anchor = self._released
-        first = self._decided[0].index
-        base = max(0, min(first - 1 if anchor is None else anchor[0], newest - _SMOOTHING_SPAN))
+        base = 0 if anchor is None else max(0, min(anchor[0], newest - _SMOOTHING_SPAN))
         # The smoother sees the frames base..newest; references are renumbered from base (further back: none).
         qualities = [replace(q, reference=q.reference - base) for q in vo.qualities[base:]]
         smoothed = smooth_step_lengths(np.stack(vo.poses[base:]), qualities, vo.params)
@@ -518,7 +524,7 @@ class OnlineOdometry:
             if quality.reliable or anchor is None:
                 self._anchor = anchor = (k, pose)
             stamp = self._stamps.pop(k)
-            out.append(OnlineDecision(stamp, pose.copy() if quality.reliable else None, quality))
+            out.append(OnlineDecision(stamp, pose.copy() if quality.reliable else None, quality, pose.copy()))
         return out
 
 

@@ -290,7 +290,9 @@ class VOParams:
             bad, 133 unreliable. KITTI 06: 1.55 % (one frame flagged) against 1.58 %.
         smooth_lengths: after the whole sequence (:func:`smooth_step_lengths`,
             which :func:`~selfcontra_ros.odometry.run.estimate_poses` calls;
-            the online node's poses are not smoothed), the step lengths
+            the node's online odometry over the frames up to
+            ``smoothing_lag_frames`` after each, and not at all, without
+            delay, when this is off), the step lengths
             are smoothed by a Kalman filter and Rauch-Tung-Striebel smoother
             with a constant-velocity model of the step length: every step
             measured from the frame before (reliable or ``weak_scale``) is a

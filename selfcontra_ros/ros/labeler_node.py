@@ -227,7 +227,7 @@ from selfcontra_ros.geometry import StereoCamera
 from selfcontra_ros.labeler import LabelerParams, LabelResult
 from selfcontra_ros.labels import colorize_labels
 from selfcontra_ros.matching.base import MatcherParams
-from selfcontra_ros.odometry.run import OnlineOdometry
+from selfcontra_ros.odometry.run import OnlineDecision, OnlineOdometry
 from selfcontra_ros.rectification import calibration_key
 from selfcontra_ros.ros.conversions import (
     disparity_from_message,
@@ -1128,13 +1128,20 @@ class LabelerNode(Node):
         leaves it when the decision is no.
         """
         assert self._odometry is not None
+        return self._apply_decisions(self._odometry.add(stamp_ns, left, right), stamp_ns)
+
+    def _apply_decisions(self, decisions: list[OnlineDecision], current_ns: int | None = None) -> bool:
+        """Poses of the odometry's decisions into the pose buffer; views decided unreliable leave the queue.
+
+        Returns False when the frame at ``current_ns`` (not queued yet) was decided unreliable.
+        """
         labelled = True
-        for decision in self._odometry.add(stamp_ns, left, right):
+        for decision in decisions:
             if decision.pose is not None:
                 self._poses.add(decision.stamp_ns, decision.pose)
                 continue
             self._drop("odometry_unreliable", decision.quality.message or "unreliable pose")
-            if decision.stamp_ns == stamp_ns:
+            if decision.stamp_ns == current_ns:
                 labelled = False
             else:  # an earlier frame, whose view waits for this decision
                 self._awaiting_pose[:] = [v for v in self._awaiting_pose if v.key.stamp_ns != decision.stamp_ns]
@@ -1199,7 +1206,7 @@ class LabelerNode(Node):
         except Exception as exc:
             self._drop("error", f"pose: unexpected {type(exc).__name__}: {exc}")
 
-    def _release_views(self) -> None:
+    def _release_views(self, *, block: bool = False) -> None:
         """Give their pose to the waiting frames (oldest first) and queue them for labeling.
 
         A frame whose stamp the pose stream has not reached waits, unless a
@@ -1207,7 +1214,9 @@ class LabelerNode(Node):
         stream stopped or lags too far): then it is looked up one last time
         (extrapolating at most ``max_pose_extrapolation`` s) and dropped when
         that fails. With ``pose_source: odometry`` a frame waits for the
-        odometry's decision instead, which always comes (``_odometry_pose``).
+        odometry's decision instead, which comes ``max_hold`` frames later or
+        at shutdown (``_odometry_pose``, ``stop``); ``block``: wait for room
+        in the label queue instead of dropping the view (shutdown).
         """
         max_wait_ns = round(self._max_pose_gap * 1e9)
         while self._awaiting_pose:
@@ -1243,7 +1252,10 @@ class LabelerNode(Node):
                 view.pose = lookup.pose
                 self._poses.discard_before(stamp)
             try:
-                self._label_queue.put_nowait(view)
+                if block:  # at shutdown: wait for the worker rather than drop
+                    self._label_queue.put(view, timeout=_JOIN_TIMEOUT_S)
+                else:
+                    self._label_queue.put_nowait(view)
             except queue.Full:
                 self._drop("label_queue_full", f"labeling is behind; view at {stamp} ns skipped")
                 continue
@@ -1309,11 +1321,19 @@ class LabelerNode(Node):
     def stop(self) -> None:
         """Stop the labeling worker; with ``flush_on_shutdown`` label what is queued and flush the window first.
 
-        Safe to call more than once. Frames still waiting for their pose are discarded.
+        Safe to call more than once. Frames still waiting for their pose are discarded; with
+        ``flush_on_shutdown`` and ``pose_source: odometry`` the odometry first decides the frames it
+        still holds (``OnlineOdometry.finish``, the end of the sequence), and those with a pose are labelled.
         """
         if self._worker is None:
             return
         worker, self._worker = self._worker, None
+        if self._flush_on_shutdown and self._odometry is not None:
+            try:
+                self._apply_decisions(self._odometry.finish())
+                self._release_views(block=True)
+            except Exception as exc:
+                self._drop("error", f"the odometry's last frames: {type(exc).__name__}: {exc}")
         self._stop.set()
         if self._awaiting_pose:
             self._drop("shutdown_discarded", "node stopping", len(self._awaiting_pose))

@@ -24,7 +24,9 @@ from selfcontra_ros.odometry.run import (
     quality_paths,
 )
 from selfcontra_ros.odometry.stereo_vo import (
+    FrameQuality,
     OdometryError,
+    OdometryResult,
     StereoOdometry,
     VOParams,
     mark_isolated,
@@ -449,3 +451,74 @@ def test_online_poses_come_lag_frames_late_with_the_offline_smoother_over_what_w
     # last frames less: near the offline poses (measured: 5.9 mm with lag 0, 0.2 mm with 3, on a 9.2 m path).
     path = np.linalg.norm(np.diff(offline[:, :3, 3], axis=0), axis=1).sum()
     assert np.abs(poses[:, :3, 3] - offline[:, :3, 3]).max() < 0.003 * path
+
+
+class _StubOdometry:
+    """What OnlineOdometry uses of StereoOdometry, on a straight road of 1 m steps along z.
+
+    A measured frame's step from its reference (the last measured frame) reads ``1 + noise`` m per frame;
+    a frame in ``failed`` is unreliable with the guess of no motion, rewritten to the straight line between
+    its measured neighbours once the next measured frame comes, as StereoOdometry interpolates.
+    """
+
+    def __init__(self, params: VOParams, failed: set[int], noise_pct: float, seed: int = 0) -> None:
+        self.params = params
+        self.failed = failed
+        self.noise = noise_pct / 100.0
+        self.rng = np.random.default_rng(seed)
+        self.poses: list[np.ndarray] = []
+        self.qualities: list[FrameQuality] = []
+        self.last_measured = 0
+
+    def add(self, left: np.ndarray, right: np.ndarray, stamp: float = 0.0) -> OdometryResult:
+        k = len(self.poses)
+        common = {"index": k, "stamp": stamp, "features": 500, "stereo_matches": 300}
+        pose = np.eye(4)
+        if k == 0:
+            quality = FrameQuality(status="first", reliable=True, **common)
+        elif k in self.failed:
+            pose = self.poses[-1].copy()
+            quality = FrameQuality(status="few_features", reliable=False, reference=self.last_measured, **common)
+        else:
+            ref = self.last_measured
+            length = (k - ref) * (1.0 + self.noise * self.rng.standard_normal())
+            pose[2, 3] = self.poses[ref][2, 3] + length
+            for j in range(ref + 1, k):  # the guesses between, interpolated
+                self.poses[j][2, 3] = self.poses[ref][2, 3] + length * (j - ref) / (k - ref)
+            quality = FrameQuality(status="ok", reliable=True, reference=ref, translation_m=length, inliers=100,
+                                   scale_std_pct=100.0 * self.noise, **common)  # fmt: skip
+            self.last_measured = k
+        self.poses.append(pose)
+        self.qualities.append(quality)
+        return OdometryResult(pose.copy(), quality)
+
+
+def _online_over(stub: _StubOdometry, frames: int) -> list:
+    camera = StereoCamera(fx=500.0, fy=500.0, cx=320.0, cy=96.0, baseline=0.5, width=640, height=192)
+    online = OnlineOdometry(camera, stub.params)
+    online._vo = stub  # type: ignore[assignment]
+    blank = np.zeros((1, 1), np.uint8)
+    return [d for k in range(frames) for d in online.add(k, blank, blank)] + online.finish()
+
+
+def test_online_smoothing_holds_on_a_long_sequence() -> None:
+    """Past the smoothing span (60 frames) the window slides: the released step lengths stay smoothed (their
+    spread about half the measured 5 %), as at the start."""
+    decisions = _online_over(_StubOdometry(VOParams(), set(), noise_pct=5.0), 200)
+    z = np.array([d.pose[2, 3] for d in decisions])
+    steps = np.diff(z)
+    measured = np.array([q.translation_m for q in [d.quality for d in decisions][1:]])
+    assert np.std(measured[100:] - 1.0) > 0.04  # the stub's noise
+    assert np.std(steps[100:] - 1.0) < 0.6 * np.std(measured[100:] - 1.0)  # measured 0.35 (0.48 below); unsmoothed 1
+    assert np.std(steps[10:60] - 1.0) < 0.6 * np.std(measured[10:60] - 1.0)
+
+
+def test_online_pose_after_a_failure_longer_than_the_lag_is_measured_from_the_last_reliable_frame() -> None:
+    """Frames 50-57 fail; the first of them come out (5 frames late) before frame 58 measures across them
+    and the odometry rewrites their guesses. Frame 58 must sit 9 steps after frame 49, not after the
+    guesses that came out."""
+    decisions = _online_over(_StubOdometry(VOParams(), set(range(50, 58)), noise_pct=0.5), 80)
+    assert [d.pose is None for d in decisions[48:60]] == [False, False] + [True] * 8 + [False, False]
+    assert decisions[58].pose is not None and decisions[49].pose is not None
+    assert decisions[58].pose[2, 3] - decisions[49].pose[2, 3] == pytest.approx(9.0, abs=0.2)
+    assert decisions[79].pose[2, 3] == pytest.approx(79.0, abs=1.0)
