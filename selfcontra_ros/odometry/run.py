@@ -476,12 +476,12 @@ class OnlineOdometry:
         result = self._vo.add(left, right, stamp_ns / _NS_PER_S)
         self.last_quality = result.quality
         self._stamps[result.quality.index] = int(stamp_ns)
-        self._decided.extend(quality for _, quality in self._gate.add(result.pose, result.quality))
+        self._decided.extend(self._gate.add(result.quality))
         return self._release(result.quality.index - self._lag)
 
     def finish(self) -> list[OnlineDecision]:
         """The end of the stream: decide and release every frame still held (as :func:`estimate_poses` would)."""
-        self._decided.extend(quality for _, quality in self._gate.finish())
+        self._decided.extend(self._gate.finish())
         return self._release(len(self._vo.poses) - 1)
 
     def undecided(self) -> list[int]:

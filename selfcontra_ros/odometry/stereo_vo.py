@@ -1820,23 +1820,12 @@ def mark_isolated(qualities: list[FrameQuality], params: VOParams | None = None)
     ``params.isolated_frames`` frames before and after it reported unreliable (status ``isolated``).
 
     The first frame (the world's origin, exact) is never marked but counts as
-    a reliable neighbour. Unchanged when ``isolated_frames`` is 0.
-    :class:`IsolationGate` makes the same decisions as frames arrive.
+    a reliable neighbour. Unchanged when ``isolated_frames`` is 0. The whole
+    sequence through :class:`IsolationGate`, which decides as frames arrive.
     """
-    p = params or VOParams()
-    reach = int(p.isolated_frames)
-    if reach <= 0:
-        return list(qualities)
-    reliable = np.array([q.reliable for q in qualities], dtype=bool)
-    # Reliable frames within reach on either side, the frame itself left out.
-    total = np.concatenate([[0], np.cumsum(reliable)])
-    index = np.arange(reliable.size)
-    counts = total[np.minimum(index + reach + 1, reliable.size)] - total[np.maximum(index - reach, 0)] - reliable
-    out = list(qualities)
-    for k in np.flatnonzero(reliable & (counts == 0)):
-        if qualities[k].status != "first":
-            out[k] = _isolated(qualities[k], reach)
-    return out
+    gate = IsolationGate(params)
+    out = [decided for quality in qualities for decided in gate.add(quality)]
+    return out + gate.finish()
 
 
 def _isolated(quality: FrameQuality, reach: int) -> FrameQuality:
@@ -1851,9 +1840,8 @@ def _isolated(quality: FrameQuality, reach: int) -> FrameQuality:
 
 @dataclass
 class _Pending:
-    """A frame in :class:`IsolationGate`: its pose, quality and what the frames after it showed so far."""
+    """A frame in :class:`IsolationGate`: its quality and what the frames after it showed so far."""
 
-    pose: F64
     quality: FrameQuality
     waiting: bool  # reliable, but no reliable frame within reach before it: the frames after it decide
     after: int = 0  # frames seen after it
@@ -1877,8 +1865,8 @@ class IsolationGate:
         self._recent: deque[bool] = deque(maxlen=max(self._reach, 1))
         self._queue: deque[_Pending] = deque()
 
-    def add(self, pose: F64, quality: FrameQuality) -> list[tuple[F64, FrameQuality]]:
-        """Take the next frame; return the frames (pose, final quality) now decided, oldest first."""
+    def add(self, quality: FrameQuality) -> list[FrameQuality]:
+        """Take the next frame's quality; return the final qualities of the frames now decided, oldest first."""
         reliable = quality.reliable
         for pending in self._queue:
             if pending.waiting:
@@ -1890,10 +1878,10 @@ class IsolationGate:
                     pending.quality = _isolated(pending.quality, self._reach)
         waits = reliable and self._reach > 0 and quality.status != "first" and not any(self._recent)
         self._recent.append(reliable)
-        self._queue.append(_Pending(pose, quality, waits))
+        self._queue.append(_Pending(quality, waits))
         return self._decided()
 
-    def finish(self) -> list[tuple[F64, FrameQuality]]:
+    def finish(self) -> list[FrameQuality]:
         """The end of the sequence: every frame still waiting had no reliable frame after it."""
         for pending in self._queue:
             if pending.waiting:
@@ -1905,11 +1893,10 @@ class IsolationGate:
         """Indices (:attr:`FrameQuality.index`) of the frames still waiting, or queued behind one."""
         return [pending.quality.index for pending in self._queue]
 
-    def _decided(self) -> list[tuple[F64, FrameQuality]]:
+    def _decided(self) -> list[FrameQuality]:
         out = []
         while self._queue and not self._queue[0].waiting:
-            pending = self._queue.popleft()
-            out.append((pending.pose, pending.quality))
+            out.append(self._queue.popleft().quality)
         return out
 
 

@@ -532,27 +532,41 @@ def _flagged(flags: NDArray[np.bool_], first: int) -> list[FrameQuality]:
     return out
 
 
+def _isolated_by_counting(flags: NDArray[np.bool_], first: int, reach: int) -> list[bool]:
+    """The rule counted over the whole sequence at once (the reference): a reliable frame other than the
+    first with no other reliable frame within ``reach`` frames on either side is isolated."""
+    total = np.concatenate([[0], np.cumsum(flags)])
+    index = np.arange(flags.size)
+    counts = total[np.minimum(index + reach + 1, flags.size)] - total[np.maximum(index - reach, 0)] - flags
+    return [bool(ok and counts[k] == 0 and k != first and reach > 0) for k, ok in enumerate(flags)]
+
+
 @pytest.mark.parametrize("reach", [0, 1, 2, 3])
-def test_the_isolation_gate_decides_as_frames_arrive_what_mark_isolated_decides_at_the_end(reach: int) -> None:
-    """IsolationGate (the node's form of mark_isolated): the same decisions on random reliability patterns,
-    in frame order, each frame decided at most ``reach`` frames after it arrived."""
+def test_the_isolation_gate_decides_as_frames_arrive_what_counting_over_the_sequence_decides(reach: int) -> None:
+    """IsolationGate (mark_isolated's mechanism, the node's too): on random reliability patterns, the frames
+    a count over the whole sequence isolates, in frame order, each decided at most ``reach`` frames after
+    it arrived."""
     rng = np.random.default_rng(reach)
     params = VOParams(isolated_frames=reach)
     for _ in range(200):
         n = int(rng.integers(1, 30))
-        flags = rng.random(n) < rng.uniform(0.1, 0.9)
-        qualities = _flagged(flags, first=int(rng.integers(0, 3)))
+        first = int(rng.integers(0, 3))
+        qualities = _flagged(rng.random(n) < rng.uniform(0.1, 0.9), first=first)
+        reliable = np.array([q.reliable for q in qualities])
         gate = IsolationGate(params)
         decided: list[FrameQuality] = []
-        poses = [np.full((4, 4), float(k)) for k in range(n)]
         for k, quality in enumerate(qualities):
-            out = gate.add(poses[k], quality)
-            assert all(pose is poses[q.index] for pose, q in out)  # each pose travels with its own quality
-            decided += [q for _, q in out]
+            decided += gate.add(quality)
             assert len(decided) >= k + 1 - reach, "no frame waits longer than reach frames"
             assert gate.undecided() == list(range(len(decided), k + 1))
-        decided += [q for _, q in gate.finish()]
+        decided += gate.finish()
         assert gate.undecided() == []
+        assert [q.index for q in decided] == list(range(n))
+        expected = _isolated_by_counting(reliable, first, reach)
+        assert [q.status == "isolated" for q in decided] == expected
+        for q, before, isolated in zip(decided, qualities, expected, strict=True):
+            assert q is before or isolated  # the others untouched
+            assert q.reliable == (before.reliable and not isolated)
         assert decided == mark_isolated(qualities, params)
 
 
@@ -561,14 +575,14 @@ def test_the_isolation_gate_holds_only_frames_after_an_unreliable_run() -> None:
     next two frames, and the frames behind it wait with it."""
     gate = IsolationGate(VOParams())
     q = _flagged(np.array([1, 1, 1, 0, 0, 1, 0, 0, 1, 1], bool), first=0)
-    assert [len(gate.add(np.eye(4), q[k])) for k in range(5)] == [1, 1, 1, 1, 1]
-    assert gate.add(np.eye(4), q[5]) == [] and gate.undecided() == [5]
-    assert gate.add(np.eye(4), q[6]) == [] and gate.undecided() == [5, 6]
-    out = gate.add(np.eye(4), q[7])  # no reliable frame within 2 after frame 5 either: isolated
-    assert [(o.index, o.status) for _, o in out] == [(5, "isolated"), (6, "weak_scale"), (7, "weak_scale")]
-    assert gate.add(np.eye(4), q[8]) == [] and gate.undecided() == [8]
-    out = gate.add(np.eye(4), q[9])  # frame 9 is frame 8's reliable neighbour, and has frame 8 before it
-    assert [(o.index, o.status) for _, o in out] == [(8, "ok"), (9, "ok")]
+    assert [len(gate.add(q[k])) for k in range(5)] == [1, 1, 1, 1, 1]
+    assert gate.add(q[5]) == [] and gate.undecided() == [5]
+    assert gate.add(q[6]) == [] and gate.undecided() == [5, 6]
+    out = gate.add(q[7])  # no reliable frame within 2 after frame 5 either: isolated
+    assert [(o.index, o.status) for o in out] == [(5, "isolated"), (6, "weak_scale"), (7, "weak_scale")]
+    assert gate.add(q[8]) == [] and gate.undecided() == [8]
+    out = gate.add(q[9])  # frame 9 is frame 8's reliable neighbour, and has frame 8 before it
+    assert [(o.index, o.status) for o in out] == [(8, "ok"), (9, "ok")]
 
 
 @pytest.mark.parametrize("gap", [1, 2])
