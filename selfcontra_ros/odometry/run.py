@@ -477,7 +477,11 @@ class OnlineOdometry:
         self.last_quality = result.quality
         self._stamps[result.quality.index] = int(stamp_ns)
         self._decided.extend(self._gate.add(result.quality))
-        return self._release(result.quality.index - self._lag)
+        decisions = self._release(result.quality.index - self._lag)
+        # Memory stays bounded on a stream of hours: the odometry forgets what the smoother will not read again
+        # (a span more than it reads, so that mending the poses after a failure finds what it needs).
+        self._vo.forget_before(self._smoothing_window(len(self._vo.poses) - 1)[1] - _SMOOTHING_SPAN)
+        return decisions
 
     def finish(self) -> list[OnlineDecision]:
         """The end of the stream: decide and release every frame still held (as :func:`estimate_poses` would)."""
@@ -493,6 +497,22 @@ class OnlineOdometry:
         """The most frames a frame waits for its decision (the smoothing lag, or the isolation reach)."""
         return max(self._lag, int(self._vo.params.isolated_frames))
 
+    def _smoothing_window(self, newest: int) -> tuple[tuple[int, NDArray[np.float64]] | None, int]:
+        """The anchor of the next poses released, and the first frame the smoother reads.
+
+        A frame's pose is the anchor's (the last reliable frame released) and
+        the measured motion since, with the step lengths smoothed: the
+        odometry still rewrites the guessed poses of unreliable frames between
+        them when a measured frame follows, so they are not chained through.
+        Once the last reliable frame lies more than the smoothing span back
+        (a failure of about span - lag frames), the anchor is the last frame
+        released instead, so the smoother's window stays bounded.
+        """
+        anchor = self._anchor
+        if anchor is None or anchor[0] < newest - _SMOOTHING_SPAN:
+            anchor = self._released
+        return anchor, 0 if anchor is None else max(0, min(anchor[0], newest - _SMOOTHING_SPAN))
+
     def _release(self, last: int) -> list[OnlineDecision]:
         """Release the decided frames up to index ``last``, with their smoothed poses."""
         out: list[OnlineDecision] = []
@@ -500,15 +520,7 @@ class OnlineOdometry:
             return out
         vo = self._vo
         newest = len(vo.poses) - 1
-        # A frame's pose is the anchor's (the last reliable frame released) and the measured motion since, with
-        # the step lengths smoothed: the odometry still rewrites the guessed poses of unreliable frames between
-        # them when a measured frame follows, so they are not chained through. Once the last reliable frame lies
-        # more than the smoothing span back (a failure of about span - lag frames), the anchor is the last frame
-        # released instead, so the smoother's window stays bounded.
-        anchor = self._anchor
-        if anchor is None or anchor[0] < newest - _SMOOTHING_SPAN:
-            anchor = self._released
-        base = 0 if anchor is None else max(0, min(anchor[0], newest - _SMOOTHING_SPAN))
+        anchor, base = self._smoothing_window(newest)
         # The smoother sees the frames base..newest; references are renumbered from base (further back: none).
         qualities = [replace(q, reference=q.reference - base) for q in vo.qualities[base:]]
         smoothed = smooth_step_lengths(np.stack(vo.poses[base:]), qualities, vo.params)

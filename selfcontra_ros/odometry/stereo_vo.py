@@ -53,9 +53,9 @@ from __future__ import annotations
 import copy
 import math
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, Generic, TypeVar, overload
 
 import cv2
 import numpy as np
@@ -70,6 +70,7 @@ from selfcontra_ros.matching.census import hamming
 
 __all__ = [
     "STATUSES",
+    "FrameLog",
     "FrameQuality",
     "IsolationGate",
     "OdometryError",
@@ -81,6 +82,7 @@ __all__ = [
 ]
 
 F64 = NDArray[np.float64]
+_T = TypeVar("_T")
 
 #: Frame statuses: the first three are reliable.
 STATUSES = (
@@ -595,6 +597,73 @@ def _vector_from_pose(pose: F64) -> F64:
     return np.concatenate([Rotation.from_matrix(pose[:3, :3]).as_rotvec(), pose[:3, 3]])
 
 
+class FrameLog(Generic[_T]):
+    """Per-frame values by frame index, like a list that can forget its oldest entries.
+
+    ``len`` is the number of frames ever appended, so indices stay the
+    frames' own after forgetting; reading a forgotten frame raises
+    :class:`IndexError` naming it. A node that runs for hours keeps only
+    what the odometry still reads (:meth:`StereoOdometry.forget_before`).
+    """
+
+    def __init__(self) -> None:
+        self._items: dict[int, _T] = {}
+        self._count = 0
+
+    def __len__(self) -> int:
+        return self._count
+
+    def __bool__(self) -> bool:
+        return self._count > 0
+
+    def append(self, value: _T) -> None:
+        self._items[self._count] = value
+        self._count += 1
+
+    def _index(self, index: int) -> int:
+        k = index + self._count if index < 0 else index
+        if not 0 <= k < self._count:
+            raise IndexError(f"frame {index} out of range ({self._count} frames)")
+        return k
+
+    @overload
+    def __getitem__(self, index: int) -> _T: ...
+    @overload
+    def __getitem__(self, index: slice) -> list[_T]: ...
+    def __getitem__(self, index: int | slice) -> _T | list[_T]:
+        if isinstance(index, slice):
+            return [self[k] for k in range(*index.indices(self._count))]
+        k = self._index(index)
+        try:
+            return self._items[k]
+        except KeyError:
+            raise IndexError(f"frame {k} was forgotten (forget_before)") from None
+
+    def __setitem__(self, index: int, value: _T) -> None:
+        k = self._index(index)
+        if k not in self._items:
+            raise IndexError(f"frame {k} was forgotten (forget_before)")
+        self._items[k] = value
+
+    def __iter__(self) -> Iterator[_T]:
+        return iter(self[:])
+
+    def __contains__(self, index: object) -> bool:
+        """Whether frame ``index`` (a frame index, not a value) is still held."""
+        return index in self._items
+
+    def forget(self, indices: Iterable[int]) -> int:
+        """Forget these frames (those still held); returns how many."""
+        gone = [k for k in indices if k in self._items]
+        for k in gone:
+            del self._items[k]
+        return len(gone)
+
+    def held(self) -> list[int]:
+        """The indices still held, oldest first."""
+        return sorted(self._items)
+
+
 class StereoOdometry:
     """Stereo visual odometry fed one rectified pair at a time, online or offline.
 
@@ -621,8 +690,8 @@ class StereoOdometry:
             fastThreshold=p.fast_threshold,
         )  # fmt: skip
         self._lk_criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
-        self.poses: list[F64] = []
-        self.qualities: list[FrameQuality] = []
+        self.poses: FrameLog[F64] = FrameLog()
+        self.qualities: FrameLog[FrameQuality] = FrameLog()
         self._reference: tuple[int, NDArray[np.uint8], _Features] | None = None
         self._velocity: F64 | None = None  # T_ref_cur per frame of the last reliable step
         self._next_track = 0
@@ -1287,8 +1356,39 @@ class StereoOdometry:
 
     def smoothed_poses(self) -> F64:
         """The poses so far with their step lengths smoothed (:func:`smooth_step_lengths`), (N, 4, 4)."""
-        poses = np.stack(self.poses) if self.poses else np.zeros((0, 4, 4))
-        return smooth_step_lengths(poses, self.qualities, self.params)
+        poses = np.stack(self.poses[:]) if self.poses else np.zeros((0, 4, 4))
+        return smooth_step_lengths(poses, self.qualities[:], self.params)
+
+    def forget_before(self, index: int) -> int:
+        """Forget the poses and qualities of the frames before ``index``; returns how many were forgotten.
+
+        For a long-running node (about 0.8 kB a frame otherwise, 29 MB an
+        hour at 10 Hz): :class:`~selfcontra_ros.odometry.run.OnlineOdometry`
+        forgets what its smoother no longer reads. What the next frames are
+        measured from stays, and everything after it: the frames from the
+        reference frame or the windowed adjustment's oldest frame on,
+        whichever is older, and the newest frame. A reliable frame that comes
+        after unreliable ones mends their poses back to the last reliable
+        frame (:meth:`_interpolate_unreliable_steps`) only when that frame is
+        still held; otherwise the guesses stay. The tracks found moving are
+        forgotten once no frame that can be matched or adjusted has them
+        (exact: nothing else reads them). :attr:`poses` and
+        :attr:`qualities` keep their indices; reading a forgotten frame raises
+        :class:`IndexError`, so :meth:`smoothed_poses` needs every frame.
+        """
+        until = min(index, len(self.poses) - 1)
+        if self._reference is not None:
+            until = min(until, self._reference[0])
+        if self._window:
+            until = min(until, min(frame.index for frame in self._window))
+        drop = [k for k in self.poses.held() if k < until]
+        self.qualities.forget(drop)
+        if self._bad_tracks:  # only the reference's tracks are matched again, and the window's adjusted
+            alive = [frame.track_ids for frame in self._window]
+            if self._reference is not None:
+                alive.append(self._reference[2].track_ids)
+            self._bad_tracks.intersection_update(np.concatenate(alive).tolist() if alive else ())
+        return self.poses.forget(drop)
 
     def _frame_step(self, index: int) -> F64:
         """The measured frame ``index``'s motion per frame since its reference (``T_prev_cur``, 4x4)."""
@@ -1364,16 +1464,17 @@ class StereoOdometry:
         adjustment's copies follow.
         """
         start = index - 1
-        while start >= 0 and not self.qualities[start].reliable:
+        while start in self.qualities and not self.qualities[start].reliable:
             start -= 1
-        if start < 0 or start == index - 1:
-            return
+        if start not in self.qualities or start == index - 1:
+            return  # no reliable frame before (or it was forgotten: forget_before)
         reference = self.qualities[index].reference
         measured = invert_pose(self.poses[reference]) @ self.poses[index]
         per_frame = _step_of(measured, index - reference)
         end = per_frame[:3, 3]
         begin = end
-        if start >= 1 and self.qualities[start].status in ("ok", "static"):
+        before = self.qualities[start]
+        if start >= 1 and before.status in ("ok", "static") and before.reference in self.poses:
             begin = self._frame_step(start)[:3, 3]
         gap = index - start
         steps = [invert_pose(self.poses[k - 1]) @ self.poses[k] for k in range(start + 1, reference + 1)]
@@ -1815,7 +1916,7 @@ def _step_of(motion: F64, steps: int) -> F64:
     return step
 
 
-def mark_isolated(qualities: list[FrameQuality], params: VOParams | None = None) -> list[FrameQuality]:
+def mark_isolated(qualities: Iterable[FrameQuality], params: VOParams | None = None) -> list[FrameQuality]:
     """The qualities with every reliable frame that has no other reliable frame within
     ``params.isolated_frames`` frames before and after it reported unreliable (status ``isolated``).
 

@@ -13,6 +13,7 @@ from selfcontra_ros.bags.kitti2mcap import kitti_to_mcap
 from selfcontra_ros.datasets.kitti import open_sequence, read_poses
 from selfcontra_ros.datasets.synthetic import make_scene, write_sequence
 from selfcontra_ros.geometry import StereoCamera, invert_pose
+from selfcontra_ros.odometry import run as run_module
 from selfcontra_ros.odometry.metrics import evaluate_odometry
 from selfcontra_ros.odometry.run import (
     OnlineOdometry,
@@ -24,6 +25,7 @@ from selfcontra_ros.odometry.run import (
     quality_paths,
 )
 from selfcontra_ros.odometry.stereo_vo import (
+    FrameLog,
     FrameQuality,
     OdometryError,
     OdometryResult,
@@ -466,9 +468,15 @@ class _StubOdometry:
         self.failed = failed
         self.noise = noise_pct / 100.0
         self.rng = np.random.default_rng(seed)
-        self.poses: list[np.ndarray] = []
-        self.qualities: list[FrameQuality] = []
+        self.poses: FrameLog[np.ndarray] = FrameLog()
+        self.qualities: FrameLog[FrameQuality] = FrameLog()
         self.last_measured = 0
+
+    def forget_before(self, index: int) -> int:
+        until = min(index, self.last_measured, len(self.poses) - 1)  # the guesses after it are rewritten
+        drop = [k for k in self.poses.held() if k < until]
+        self.qualities.forget(drop)
+        return self.poses.forget(drop)
 
     def add(self, left: np.ndarray, right: np.ndarray, stamp: float = 0.0) -> OdometryResult:
         k = len(self.poses)
@@ -504,7 +512,10 @@ def _online_over(stub: _StubOdometry, frames: int) -> list:
 def test_online_smoothing_holds_on_a_long_sequence() -> None:
     """Past the smoothing span (60 frames) the window slides: the released step lengths stay smoothed (their
     spread about half the measured 5 %), as at the start."""
-    decisions = _online_over(_StubOdometry(VOParams(), set(), noise_pct=5.0), 200)
+    stub = _StubOdometry(VOParams(), set(), noise_pct=5.0)
+    decisions = _online_over(stub, 200)
+    # The odometry was told to forget what the smoother no longer reads (it would raise on reading it).
+    assert len(stub.poses.held()) <= 2 * run_module._SMOOTHING_SPAN + VOParams().smoothing_lag_frames + 1
     z = np.array([d.pose[2, 3] for d in decisions])
     steps = np.diff(z)
     measured = np.array([q.translation_m for q in [d.quality for d in decisions][1:]])
@@ -522,3 +533,76 @@ def test_online_pose_after_a_failure_longer_than_the_lag_is_measured_from_the_la
     assert decisions[58].pose is not None and decisions[49].pose is not None
     assert decisions[58].pose[2, 3] - decisions[49].pose[2, 3] == pytest.approx(9.0, abs=0.2)
     assert decisions[79].pose[2, 3] == pytest.approx(79.0, abs=1.0)
+
+
+def test_a_frame_log_keeps_frame_indices_after_forgetting() -> None:
+    log: FrameLog[int] = FrameLog()
+    for k in range(6):
+        log.append(10 * k)
+    assert log.forget(range(3)) == 3 and log.forget([0, 1]) == 0
+    assert len(log) == 6 and log.held() == [3, 4, 5] and 3 in log and 2 not in log
+    assert log[3] == 30 and log[-1] == 50 and log[3:] == [30, 40, 50] and list(log[-2:]) == [40, 50]
+    log[4] = 41
+    assert log[4] == 41
+    for read in (lambda: log[2], lambda: log[:4], lambda: list(log)):
+        with pytest.raises(IndexError, match=r"frame [0-2] was forgotten"):
+            read()
+    with pytest.raises(IndexError, match="frame 2 was forgotten"):
+        log[2] = 0
+    with pytest.raises(IndexError, match="out of range"):
+        log[6]
+
+
+def _blank_street(seq) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The street's frames with two textureless frames after frame 4 (a failure the odometry mends)."""
+    blank = np.full((HEIGHT, WIDTH), 128, np.uint8)
+    pairs = [(seq[k].left, seq[k].right) for k in range(FRAMES)]
+    return pairs[:5] + [(blank, blank)] * 2 + pairs[5:]
+
+
+def test_forgetting_changes_no_online_decision(street: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """OnlineOdometry forgets the odometry's frames its smoother no longer reads; with a smoothing span of 2
+    (60 by default) it forgets most of a 12-frame street with a 2-frame failure, and decides every frame as
+    with nothing forgotten."""
+    seq = open_sequence(street)
+    pairs = _blank_street(seq)
+    monkeypatch.setattr(run_module, "_SMOOTHING_SPAN", 2)
+    params = VOParams(smoothing_lag_frames=2)
+
+    def decisions(forget: bool) -> tuple[list, OnlineOdometry]:
+        online = OnlineOdometry(seq.camera, params)
+        if not forget:
+            monkeypatch.setattr(online._vo, "forget_before", lambda index: 0)
+        out = [d for k, (left, right) in enumerate(pairs) for d in online.add(k, left, right)]
+        return out + online.finish(), online
+
+    kept, _ = decisions(False)
+    forgot, online = decisions(True)
+    held = online._vo.poses.held()
+    assert held[0] >= 5 and len(held) <= 7, held
+    assert [d.quality for d in forgot] == [d.quality for d in kept]
+    unreliable = [d.pose is None for d in kept]  # the blanks, and frame 7 (the camera moved 1 step, not 3)
+    assert unreliable[:5] == [False] * 5 and unreliable[5:7] == [True, True] and unreliable[-3:] == [False] * 3
+    for a, b in zip(forgot, kept, strict=True):
+        np.testing.assert_allclose(a.chained, b.chained, atol=1e-12)
+    with pytest.raises(IndexError, match="forgotten"):
+        online._vo.smoothed_poses()
+
+
+def test_the_odometry_runs_on_after_forgetting_all_it_can(street: Path) -> None:
+    """Told after every frame to forget everything before it, the odometry keeps what it measures from
+    (the window of `window` reliable frames, and the unreliable ones since) and gives each frame the status
+    it gives with nothing forgotten, the unreliable ones too."""
+    seq = open_sequence(street)
+    pairs = _blank_street(seq)
+    whole, lean = StereoOdometry(seq.camera), StereoOdometry(seq.camera)
+    failing = 0  # unreliable frames since the last reliable one: the window waits across them
+    for left, right in pairs:
+        a, b = whole.add(left, right), lean.add(left, right)
+        failing = 0 if b.quality.reliable else failing + 1
+        assert lean.forget_before(len(lean.poses)) >= 0
+        held = lean.poses.held()
+        assert held == list(range(held[0], len(lean.poses))) and len(held) <= lean.params.window + failing, held
+        assert (a.quality.status, a.quality.reliable) == (b.quality.status, b.quality.reliable)
+        if a.quality.index <= 4:  # before the failure, nothing forgotten was ever read
+            np.testing.assert_allclose(a.pose, b.pose, atol=1e-12)
