@@ -51,7 +51,9 @@ algorithm is one view.
   length smoothed with them, and a reliable frame alone among unreliable
   ones is reported ``isolated``, as the offline ``estimate_poses`` does. A
   frame without a reliable pose keeps its depth, disparity and confidence
-  and is not labelled (``odometry_unreliable``).
+  and is not labelled (``odometry_unreliable``). Should the odometry raise,
+  the frame is published unlabelled (``odometry_error``) and the node starts
+  over with a new odometry and labeling session, as after a time jump.
 
 **Synchronisation.** Images and camera infos are grouped by header stamp
 (left image first; ``sync: exact`` needs equal stamps, ``approximate`` accepts
@@ -268,6 +270,7 @@ INPUT_QOS = ("sensor_data", "reliable")
 DROP_REASONS = (
     "bad_image",
     "odometry_unreliable",
+    "odometry_error",
     "bad_camera_info",
     "size_mismatch",
     "bad_disparity",
@@ -1126,9 +1129,31 @@ class LabelerNode(Node):
         ``isolated_frames`` after unreliable ones: ``OnlineOdometry``): its
         view waits in ``_awaiting_pose`` for it however long that takes, and
         leaves it when the decision is no.
+
+        Should the odometry raise (a defect, or an input it cannot take),
+        its state is unknown: the frame is counted as the drop
+        ``odometry_error`` and published but not labelled, and the node
+        starts over as after a time jump, with a new odometry and labeling
+        session on the next frame (the new odometry's poses are in a frame
+        of their own, which must not meet the old views'); the views still
+        waiting for the old odometry's decisions are dropped
+        (``session_reset``).
         """
         assert self._odometry is not None
-        return self._apply_decisions(self._odometry.add(stamp_ns, left, right), stamp_ns)
+        try:
+            decisions = self._odometry.add(stamp_ns, left, right)
+        except Exception as exc:
+            self._drop("odometry_error", f"frame at {stamp_ns} ns: {type(exc).__name__}: {exc}; starting over")
+            self._odometry = None
+            if self._awaiting_pose:
+                self._drop("session_reset", "odometry error", len(self._awaiting_pose))
+                self._awaiting_pose.clear()
+            with self._lock:
+                self._session = None
+                self._camera = None
+                self._camera_key = None
+            return False
+        return self._apply_decisions(decisions, stamp_ns)
 
     def _apply_decisions(self, decisions: list[OnlineDecision], current_ns: int | None = None) -> bool:
         """Poses of the odometry's decisions into the pose buffer; views decided unreliable leave the queue.

@@ -530,3 +530,73 @@ def test_odometry_pose_source_labels_the_frames_the_odometry_poses(
     for msg, result in zip(received, expected, strict=True):
         assert np.array_equal(image_to_numpy(msg), result.labels)
     assert node.stats()["drops"].get("shutdown_discarded", 0) == 0
+
+
+def test_an_odometry_error_publishes_the_frame_and_starts_over(
+    params_file: Path, ros_node: Any, labeler_node: Callable[..., Any], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """pose_source odometry: an exception in the odometry (frame 10 here) does not cost the frame its depth or
+    stop the node. Its state is unknown, so the node starts over as after a time jump: the views waiting for
+    the old odometry's decisions are dropped, and frames 11-15 are labelled by a new session from a new
+    odometry's poses (which must not meet the old views'). The labels equal two sessions fed that way."""
+    from selfcontra_ros.odometry.run import OnlineOdometry
+    from selfcontra_ros.ros.conversions import image_to_numpy
+
+    n, failing = 16, 10
+    scene = make_scene("street", 2, 320, 96, frames=n)
+    rendered = [scene.render(k) for k in range(n)]
+    stamps = [STAMP0_NS + k * 10 * PERIOD_NS for k in range(n)]
+    matcher, labeler = load_params(params_file)
+
+    def labelled(frames: range, *, finish: bool) -> tuple[list[Any], list[int]]:
+        """A fresh odometry and session fed ``frames``: the labels, and the frames still undecided at the end."""
+        odometry = OnlineOdometry(scene.camera)
+        session = LabelingSession(scene.camera, matcher, labeler)
+        decisions = [d for k in frames for d in odometry.add(stamps[k], rendered[k].left, rendered[k].right)]
+        waiting = [stamps.index(s) for s in odometry.undecided()]
+        if finish:
+            decisions += odometry.finish()
+        out = []
+        for d in decisions:
+            if d.pose is not None:
+                k = stamps.index(d.stamp_ns)
+                out += session.process(
+                    rendered[k].left, rendered[k].right, d.pose, stamp=stamps[k] / 1e9, key=k
+                ).labelled
+        return out + (session.flush() if finish else []), waiting
+
+    before, waiting = labelled(range(failing), finish=False)
+    after, _ = labelled(range(failing + 1, n), finish=True)
+    assert before and after, "both sessions should label views"
+
+    add = OnlineOdometry.add
+
+    def failing_add(self: Any, stamp: int, left: Any, right: Any) -> Any:
+        if stamp == stamps[failing]:
+            raise ValueError("injected odometry defect")
+        return add(self, stamp, left, right)
+
+    monkeypatch.setattr(OnlineOdometry, "add", failing_add)
+    node = labeler_node(pose_source="odometry", flush_on_shutdown=True)
+    feeder = Feeder(ros_node)
+    recorder = Recorder(ros_node)
+    subscribed = lambda: feeder.left.get_subscription_count() >= 1 and recorder.matched()  # noqa: E731
+    assert spin_nodes([node, ros_node], subscribed, WAIT_S)
+    for k in range(n):
+        feeder.infos(scene.camera, stamps[k])
+        feeder.images(rendered[k].left, rendered[k].right, stamps[k])
+        assert spin_nodes([node, ros_node], lambda k=k: recorder.count(topics.DEPTH) > k, WAIT_S), k
+    node.stop()
+    expected = before + after
+    assert spin_nodes([node, ros_node], lambda: recorder.count(topics.LABELS) >= len(expected), WAIT_S), (
+        recorder.stats,
+        node.stats(),
+    )
+    assert [stamp_ns(m) for m in recorder.received[topics.DEPTH]] == stamps, "every frame keeps its depth"
+    received = recorder.received[topics.LABELS]
+    assert [stamp_ns(m) for m in received] == [stamps[r.key] for r in expected]
+    for msg, result in zip(received, expected, strict=True):
+        assert np.array_equal(image_to_numpy(msg), result.labels)
+    drops = node.stats()["drops"]
+    assert drops["odometry_error"] == 1
+    assert drops["session_reset"] == len(waiting) > 0
