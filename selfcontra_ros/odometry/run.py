@@ -479,8 +479,8 @@ class OnlineOdometry:
         self._decided.extend(self._gate.add(result.quality))
         decisions = self._release(result.quality.index - self._lag)
         # Memory stays bounded on a stream of hours: the odometry forgets what the smoother will not read again
-        # (a span more than it reads, so that mending the poses after a failure finds what it needs).
-        self._vo.forget_before(self._smoothing_window(len(self._vo.poses) - 1)[1] - _SMOOTHING_SPAN)
+        # (and keeps what it reads itself).
+        self._vo.forget_before(self._smoothing_window(len(self._vo.poses) - 1)[1])
         return decisions
 
     def finish(self) -> list[OnlineDecision]:

@@ -97,6 +97,12 @@ _OFFSET_STD_FLOOR_PX = 0.05
 #: centred: each covers one side of the 19x9 stereo window.
 _HALF_WINDOW = (9, 9)
 _HALF_SHIFT_PX = 5.0
+#: The longest run of unreliable frames that a reliable frame after it mends
+#: (:meth:`StereoOdometry._interpolate_unreliable_steps`): 10 s at 10 Hz. Across a longer failure (a covered
+#: lens, a night parked in the dark) a velocity interpolated between its ends means nothing, and a long-running
+#: node need not keep the run's frames (``forget_before``). Every benchmark sequence is shorter: no figure
+#: depends on it.
+_MAX_MENDED_FRAMES = 100
 # Spread of the two-way refinement's step length over its normal equations' estimate (see _refine_two_way).
 _SHARED = 2.0
 
@@ -648,8 +654,8 @@ class FrameLog(Generic[_T]):
     def __iter__(self) -> Iterator[_T]:
         return iter(self[:])
 
-    def __contains__(self, index: object) -> bool:
-        """Whether frame ``index`` (a frame index, not a value) is still held."""
+    def holds(self, index: int) -> bool:
+        """Whether frame ``index`` is still held (appended and not forgotten)."""
         return index in self._items
 
     def forget(self, indices: Iterable[int]) -> int:
@@ -1360,28 +1366,34 @@ class StereoOdometry:
         return smooth_step_lengths(poses, self.qualities[:], self.params)
 
     def forget_before(self, index: int) -> int:
-        """Forget the poses and qualities of the frames before ``index``; returns how many were forgotten.
+        """Forget the poses and qualities of the frames before ``index`` that the odometry no longer reads;
+        returns how many were forgotten.
 
         For a long-running node (about 0.8 kB a frame otherwise, 29 MB an
         hour at 10 Hz): :class:`~selfcontra_ros.odometry.run.OnlineOdometry`
-        forgets what its smoother no longer reads. What the next frames are
-        measured from stays, and everything after it: the frames from the
-        reference frame or the windowed adjustment's oldest frame on,
-        whichever is older, and the newest frame. A reliable frame that comes
-        after unreliable ones mends their poses back to the last reliable
-        frame (:meth:`_interpolate_unreliable_steps`) only when that frame is
-        still held; otherwise the guesses stay. The tracks found moving are
-        forgotten once no frame that can be matched or adjusted has them
-        (exact: nothing else reads them). :attr:`poses` and
-        :attr:`qualities` keep their indices; reading a forgotten frame raises
-        :class:`IndexError`, so :meth:`smoothed_poses` needs every frame.
+        forgets what its smoother no longer reads. Kept whatever ``index``,
+        so that the frames to come are measured and mended exactly as
+        without forgetting: the last ``_MAX_MENDED_FRAMES`` frames (what a
+        reliable frame after a failure mends and walks back over), the
+        reference frame, the windowed adjustment's frames and the reference
+        of the last reliable frame; the frames between them are forgotten
+        during a long stop or failure, so memory stays bounded then too.
+        The tracks found moving are forgotten once no frame that can be
+        matched or adjusted has them (nothing else reads them).
+        :attr:`poses` and :attr:`qualities` keep their indices; reading a
+        forgotten frame raises :class:`IndexError`, so :meth:`smoothed_poses`
+        needs every frame.
         """
-        until = min(index, len(self.poses) - 1)
+        newest = len(self.poses) - 1
+        keep = {frame.index for frame in self._window}
         if self._reference is not None:
-            until = min(until, self._reference[0])
-        if self._window:
-            until = min(until, min(frame.index for frame in self._window))
-        drop = [k for k in self.poses.held() if k < until]
+            keep.add(self._reference[0])
+        recent = max(0, newest - _MAX_MENDED_FRAMES)
+        for k in range(newest, recent - 1, -1):  # the frame a reliable one would mend from, and its reference
+            if self.qualities.holds(k) and self.qualities[k].reliable:
+                keep.add(self.qualities[k].reference)
+                break
+        drop = [k for k in self.poses.held() if k < min(index, recent) and k not in keep]
         self.qualities.forget(drop)
         if self._bad_tracks:  # only the reference's tracks are matched again, and the window's adjusted
             alive = [frame.track_ids for frame in self._window]
@@ -1461,20 +1473,23 @@ class StereoOdometry:
         chained again from the reliable frame before, ``index`` keeps its
         measured motion from its reference, and frames between the two (no
         pose of their own) lie on the screw motion between them. The windowed
-        adjustment's copies follow.
+        adjustment's copies follow. A run of more than ``_MAX_MENDED_FRAMES``
+        unreliable frames keeps its guesses.
         """
         start = index - 1
-        while start in self.qualities and not self.qualities[start].reliable:
+        while start >= 0 and not self.qualities[start].reliable:
+            if index - start > _MAX_MENDED_FRAMES:
+                return  # too long a failure to interpolate across (its frames may be forgotten: forget_before)
             start -= 1
-        if start not in self.qualities or start == index - 1:
-            return  # no reliable frame before (or it was forgotten: forget_before)
+        if start < 0 or start == index - 1:
+            return
         reference = self.qualities[index].reference
         measured = invert_pose(self.poses[reference]) @ self.poses[index]
         per_frame = _step_of(measured, index - reference)
         end = per_frame[:3, 3]
         begin = end
         before = self.qualities[start]
-        if start >= 1 and before.status in ("ok", "static") and before.reference in self.poses:
+        if start >= 1 and before.status in ("ok", "static"):
             begin = self._frame_step(start)[:3, 3]
         gap = index - start
         steps = [invert_pose(self.poses[k - 1]) @ self.poses[k] for k in range(start + 1, reference + 1)]
