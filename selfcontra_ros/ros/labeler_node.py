@@ -1135,9 +1135,9 @@ class LabelerNode(Node):
         ``odometry_error`` and published but not labelled, and the node
         starts over as after a time jump, with a new odometry and labeling
         session on the next frame (the new odometry's poses are in a frame
-        of their own, which must not meet the old views'); the views still
-        waiting for the old odometry's decisions are dropped
-        (``session_reset``).
+        of their own, which must not meet the old views'); the old views
+        still waiting for the odometry's decisions, or in the label queue,
+        are dropped (``session_reset``).
         """
         assert self._odometry is not None
         try:
