@@ -386,6 +386,18 @@ class VOParams:
             the last reliable step's by more than this per frame between them
             (metres; 0.1 is 10 m/s^2 at 10 Hz) is ``weak_scale``, unless the
             next measured step confirms it (0: off).
+        stale_velocity_frames: once the constant-velocity prediction is
+            older than this (frames since a frame measured it), its tolerance
+            (``max_step_change_m``, and the prior gate's) grows by
+            ``max_velocity_change_m`` per frame of the motion for every
+            further frame: the camera may have sped up or slowed down that
+            much meanwhile (0: never). Without it, a failure during which
+            the camera started to move locked the odometry for good, every
+            later frame ``implausible`` against the old velocity (a car
+            pulling away while a bus crosses in front; in a test, a street
+            stopped for 8 frames, then 2 blank frames: every later frame
+            implausible). Long enough that no benchmark sequence's failures
+            reach it except such lock-ups (see the README).
     """
 
     features: int = 2000
@@ -428,6 +440,7 @@ class VOParams:
     max_velocity_change_m: float = 0.1
     max_step_change_m: float = 0.3
     max_step_change_ratio: float = 0.25
+    stale_velocity_frames: int = 10
     influence_grid: tuple[int, int] = (3, 8)
     influence_share: float = 0.75
     smooth_lengths: bool = True
@@ -466,7 +479,7 @@ class VOParams:
             raise OdometryError(f"VOParams.offset_min_windows must be >= 2, got {self.offset_min_windows!r}")
         for name in (
             "offset_straddle_px", "offset_window_std_px", "length_gate_sigmas", "isolated_frames",
-            "smoothing_lag_frames",
+            "smoothing_lag_frames", "stale_velocity_frames",
         ):  # fmt: skip
             if not float(getattr(self, name)) >= 0:
                 raise OdometryError(f"VOParams.{name} must be >= 0, got {getattr(self, name)!r}")
@@ -705,6 +718,7 @@ class StereoOdometry:
         self._bad_tracks: set[int] = set()  # tracks the windowed adjustment found moving
         self._reliable_step: F64 | None = None  # translation of the last reliable measured step, metres
         self._reliable_index = 0  # its frame
+        self._velocity_index = 0  # the frame that measured _velocity
         self._jump_candidate: F64 | None = None  # the last step flagged by _check_velocity_change
         self._velocity_trusted = False  # the velocity comes from a frame that passed every check
         self._implausible_candidate: F64 | None = None  # T_ref_cur per frame of the last implausible frame's group
@@ -1016,12 +1030,18 @@ class StereoOdometry:
         return np.nan_to_num(res, nan=1e3)
 
     def _static_under_prediction(
-        self, ref: _Features, cur: _Features, ri: NDArray[np.int64], ci: NDArray[np.int64], predicted: F64
+        self,
+        ref: _Features,
+        cur: _Features,
+        ri: NDArray[np.int64],
+        ci: NDArray[np.int64],
+        predicted: F64,
+        slack: float = 0.0,
     ) -> NDArray[np.bool_]:
         """Matches whose two triangulations agree in the reference frame under the predicted motion ``T_ref_cur``.
 
         Allowed: the prediction's error (``max_step_change_m`` plus
-        ``max_step_change_ratio`` of the step, and ``prior_rotation_deg`` of
+        ``max_step_change_ratio`` of the step plus ``slack``, and ``prior_rotation_deg`` of
         rotation at the point's range) and three standard deviations of both
         depths (``z^2 / (fx b)`` times 0.3 px of disparity noise).
         """
@@ -1035,6 +1055,7 @@ class StereoOdometry:
         allowed = (
             p.max_step_change_m
             + p.max_step_change_ratio * float(np.linalg.norm(predicted[:3, 3]))
+            + slack
             + np.deg2rad(p.prior_rotation_deg) * reach
             + 3.0 * sigma
         )
@@ -1230,6 +1251,8 @@ class StereoOdometry:
         gap = index - ref_index
         velocity = self._velocity
         predicted = np.eye(4) if velocity is None else np.linalg.matrix_power(velocity, gap)  # T_ref_cur
+        stale = index - self._velocity_index - p.stale_velocity_frames
+        slack = p.max_velocity_change_m * gap * stale if p.stale_velocity_frames > 0 and stale > 0 else 0.0
         guess_pose = ref_pose @ predicted
 
         def fail(status: str, message: str, **extra: Any) -> OdometryResult:
@@ -1271,14 +1294,16 @@ class StereoOdometry:
         if velocity is not None and p.prior_gate:
             # Points that moved in the world since the reference (vehicles) beyond what the prediction's error
             # and their depth noise explain do not enter RANSAC, unless too few are left.
-            still = everything[self._static_under_prediction(ref, cur, ri[everything], ci[everything], predicted)]
+            still = everything[
+                self._static_under_prediction(ref, cur, ri[everything], ci[everything], predicted, slack)
+            ]
             everything = still if len(still) >= p.min_inliers else everything
         t_cur_ref, keep = self._pnp_ransac(ref.points[ri], cur_uv, predicted, velocity is not None, everything)
         candidate, self._implausible_candidate = self._implausible_candidate, None
         if (
             velocity is not None
             and len(keep) >= p.min_inliers
-            and not self._plausible(t_cur_ref, predicted)
+            and not self._plausible(t_cur_ref, predicted, slack)
             and not self._confirms_untrusted_override(t_cur_ref, candidate, gap)
         ):
             # The largest rigid group moves unlike the camera can (a vehicle filling the view, say): the
@@ -1287,11 +1312,11 @@ class StereoOdometry:
             self._implausible_candidate = _step_of(invert_pose(t_cur_ref), gap)
             t_cur_ref, keep = self._pnp_ransac(ref.points[ri], cur_uv, predicted, True, np.setdiff1d(everything, keep))
             flow = np.linalg.norm(cur_uv[largest[1]] - ref.uv[ri[largest[1]]], axis=1)
-            if (len(keep) < p.min_inliers or not self._plausible(t_cur_ref, predicted)) and (
+            if (len(keep) < p.min_inliers or not self._plausible(t_cur_ref, predicted, slack)) and (
                 np.median(flow) < p.static_flow_px
             ):
                 t_cur_ref, keep = largest  # no other group, and the image stands still: the camera stopped
-            elif len(keep) < p.min_inliers or not self._plausible(t_cur_ref, predicted):
+            elif len(keep) < p.min_inliers or not self._plausible(t_cur_ref, predicted, slack):
                 return fail("implausible", f"the largest rigid group of matches ({first}) moves unlike the "
                             "constant-velocity prediction, and no other group does", temporal_matches=len(ri),
                             inliers=first)  # fmt: skip
@@ -1341,6 +1366,7 @@ class StereoOdometry:
         quality = FrameQuality(status=status, reliable=True, reference=ref_index, **common, **extra)  # type: ignore[arg-type]
         result = self._record(pose, quality)
         self._velocity = np.linalg.matrix_power(t_ref_cur, 1) if gap == 1 else _step_of(t_ref_cur, gap)
+        self._velocity_index = index
         self._velocity_trusted = True  # until the checks below say otherwise
         if status == "ok" or self._reference is None:
             self._reference = (index, gl, cur)
@@ -1588,12 +1614,13 @@ class StereoOdometry:
             return False
         return self._plausible(t_cur_ref, np.linalg.matrix_power(candidate, gap))
 
-    def _plausible(self, t_cur_ref: F64, predicted: F64) -> bool:
-        """Whether motion ``T_cur_ref`` is within what a camera can change from the prediction ``T_ref_cur``."""
+    def _plausible(self, t_cur_ref: F64, predicted: F64, slack: float = 0.0) -> bool:
+        """Whether motion ``T_cur_ref`` is within what a camera can change from the prediction ``T_ref_cur``
+        (``slack`` metres more for a stale prediction: ``stale_velocity_frames``)."""
         p = self.params
         step = invert_pose(t_cur_ref)[:3, 3]
         expected = predicted[:3, 3]
-        limit = p.max_step_change_m + p.max_step_change_ratio * float(np.linalg.norm(expected))
+        limit = p.max_step_change_m + p.max_step_change_ratio * float(np.linalg.norm(expected)) + slack
         return float(np.linalg.norm(step - expected)) <= limit
 
     def _reanchor(self, index: int, image: NDArray[np.uint8], cur: _Features, pose: F64) -> None:

@@ -362,6 +362,44 @@ def street_long() -> tuple[StereoCamera, list[tuple[np.ndarray, np.ndarray]], np
     return built.camera, [(f.left, f.right) for f in frames], built.poses(OFFSET_FRAMES)
 
 
+@pytest.fixture(scope="module")
+def street_seed_1() -> tuple[StereoCamera, list[tuple[np.ndarray, np.ndarray]], np.ndarray]:
+    """A 26-frame street, seed 1 (640x192)."""
+    built = make_scene("street", 1, WIDTH, HEIGHT, frames=OFFSET_FRAMES)
+    frames = [built.render(k) for k in range(OFFSET_FRAMES)]
+    return built.camera, [(f.left, f.right) for f in frames], built.poses(OFFSET_FRAMES)
+
+
+@pytest.mark.parametrize("stale_velocity_frames", [VOParams().stale_velocity_frames, 0])
+def test_the_odometry_recovers_when_the_camera_moved_off_during_a_failure(
+    street_seed_1: tuple, stale_velocity_frames: int
+) -> None:
+    """The car stands for 8 frames (``static``: the velocity is none), the view is lost for 2 frames, and
+    the car drives on at 1 m per frame: the old velocity's prediction makes every frame ``implausible``
+    until it is ``stale_velocity_frames`` old and its tolerance grows; then the steps are measured right.
+    With 0 (the tolerance never grows) the odometry never recovers."""
+    camera, frames, truth = street_seed_1
+    grey = np.full((HEIGHT, WIDTH), 128, np.uint8)
+    pairs = frames[:5] + [frames[4]] * 8 + [(grey, grey)] * 2 + frames[5:]
+    original = list(range(5)) + [4] * 8 + [-1] * 2 + list(range(5, OFFSET_FRAMES))
+    vo = StereoOdometry(camera, VOParams(stale_velocity_frames=stale_velocity_frames))
+    qualities = [vo.add(left, right).quality for left, right in pairs]
+    statuses = [q.status for q in qualities]
+    assert statuses[5:13] == ["static"] * 8 and statuses[13:15] == ["few_features"] * 2, statuses
+    after = statuses[15:]
+    if stale_velocity_frames == 0:  # locked (on this street; a vehicle moving with the camera can unlock it)
+        assert "ok" not in after and after.count("implausible") >= 15, after
+        return
+    recovered = next(k for k, status in enumerate(after) if status == "ok")
+    assert recovered <= 15, after
+    steps = [(k, vo.qualities[k].reference) for k in range(15 + recovered + 1, len(pairs)) if vo.qualities[k].reliable]
+    assert len(steps) >= 3, statuses
+    for k, ref in steps:  # each reliable step against the truth's, 2 % of its length
+        measured = invert_pose(vo.poses[ref]) @ vo.poses[k]
+        true = invert_pose(truth[original[ref]]) @ truth[original[k]]
+        assert np.linalg.norm(measured[:3, 3] - true[:3, 3]) < 0.02 * np.linalg.norm(true[:3, 3]), (k, ref)
+
+
 def _shift_right(image: np.ndarray, shift_px: float) -> np.ndarray:
     """The image content moved ``shift_px`` to the right (bilinear): every disparity ``shift_px`` smaller."""
     matrix = np.array([[1.0, 0.0, shift_px], [0.0, 1.0, 0.0]])
