@@ -38,8 +38,14 @@ CHILD_TIMEOUT_S = 300.0
 
 @pytest.fixture
 def handled() -> Iterator[None]:
-    with interrupts.handle_signals():
-        yield
+    # pytest started in the background by a script (``cmd &``) inherits SIGINT ignored, which handle_signals
+    # rightly keeps; these tests are about a terminal's Ctrl-C, so SIGINT gets Python's own handler first.
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with interrupts.handle_signals():
+            yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def test_a_signal_is_raised_at_the_next_check_not_at_once(handled: None) -> None:
