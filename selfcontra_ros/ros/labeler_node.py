@@ -1150,7 +1150,6 @@ class LabelerNode(Node):
                 self._awaiting_pose.clear()
             with self._lock:
                 self._session = None
-                self._camera = None
                 self._camera_key = None
             return False
         return self._apply_decisions(decisions, stamp_ns)
@@ -1207,7 +1206,7 @@ class LabelerNode(Node):
             if self._awaiting_pose:
                 self._drop("session_reset", "views of the previous camera", len(self._awaiting_pose))
                 self._awaiting_pose.clear()
-        else:
+        elif camera != self._camera:  # not after an odometry error, which keeps the camera (once a frame, perhaps)
             self.get_logger().info(
                 f"camera: {camera.width}x{camera.height}, fx {camera.fx:g} px, baseline {camera.baseline:g} m"
             )
