@@ -376,8 +376,9 @@ def test_the_odometry_recovers_when_the_camera_moved_off_during_a_failure(
 ) -> None:
     """The car stands for 8 frames (``static``: the velocity is none), the view is lost for 2 frames, and
     the car drives on at 1 m per frame: the old velocity's prediction makes every frame ``implausible``
-    until it is ``stale_velocity_frames`` old and its tolerance grows; then the steps are measured right.
-    With 0 (the tolerance never grows) the odometry never recovers."""
+    until it is ``stale_velocity_frames`` old and dropped; from then on the steps are measured right, the
+    first one too (a tolerance that grew with the prediction's age let a slower vehicle through first,
+    on seed 7). With 0 (the prediction never ages) the odometry never recovers."""
     camera, frames, truth = street_seed_1
     grey = np.full((HEIGHT, WIDTH), 128, np.uint8)
     pairs = frames[:5] + [frames[4]] * 8 + [(grey, grey)] * 2 + frames[5:]
@@ -391,13 +392,13 @@ def test_the_odometry_recovers_when_the_camera_moved_off_during_a_failure(
         assert "ok" not in after and after.count("implausible") >= 15, after
         return
     recovered = next(k for k, status in enumerate(after) if status == "ok")
-    assert recovered <= 15, after
-    steps = [(k, vo.qualities[k].reference) for k in range(15 + recovered + 1, len(pairs)) if vo.qualities[k].reliable]
+    assert recovered <= stale_velocity_frames + 2, after  # 12 frames after the last static one: 8 here
+    steps = [(k, vo.qualities[k].reference) for k in range(15 + recovered, len(pairs)) if vo.qualities[k].reliable]
     assert len(steps) >= 3, statuses
-    for k, ref in steps:  # each reliable step against the truth's, 2 % of its length
+    for k, ref in steps:  # each reliable step against the truth's, 5 % of its length (measured: at most 1.8 %)
         measured = invert_pose(vo.poses[ref]) @ vo.poses[k]
         true = invert_pose(truth[original[ref]]) @ truth[original[k]]
-        assert np.linalg.norm(measured[:3, 3] - true[:3, 3]) < 0.02 * np.linalg.norm(true[:3, 3]), (k, ref)
+        assert np.linalg.norm(measured[:3, 3] - true[:3, 3]) < 0.05 * np.linalg.norm(true[:3, 3]), (k, ref)
 
 
 def _shift_right(image: np.ndarray, shift_px: float) -> np.ndarray:
