@@ -49,8 +49,8 @@ def run(scene: str, seed: int, args: argparse.Namespace, stale: int) -> dict:
         "recovered_after": after.index("ok") if "ok" in after else None,
         "reliable_after": sum(q.reliable for q in qualities[first:]),
         "frames_after": len(after),
-        "worst_step_pct": max(errors) if errors else None,
-        "steps_above_2pct": sum(e > 2.0 for e in errors),
+        "worst_step_pct": float(max(errors)) if errors else None,
+        "steps_above_2pct": int(sum(e > 2.0 for e in errors)),
     }
 
 
