@@ -1031,12 +1031,7 @@ class StereoOdometry:
         return np.nan_to_num(res, nan=1e3)
 
     def _static_under_prediction(
-        self,
-        ref: _Features,
-        cur: _Features,
-        ri: NDArray[np.int64],
-        ci: NDArray[np.int64],
-        predicted: F64,
+        self, ref: _Features, cur: _Features, ri: NDArray[np.int64], ci: NDArray[np.int64], predicted: F64
     ) -> NDArray[np.bool_]:
         """Matches whose two triangulations agree in the reference frame under the predicted motion ``T_ref_cur``.
 
@@ -1392,7 +1387,7 @@ class StereoOdometry:
         """Forget the poses and qualities of the frames before ``index`` that the odometry no longer reads;
         returns how many were forgotten.
 
-        For a long-running node (about 0.8 kB a frame otherwise, 29 MB an
+        For a long-running node (about 0.9 kB a frame otherwise, 30 MiB an
         hour at 10 Hz): :class:`~selfcontra_ros.odometry.run.OnlineOdometry`
         forgets what its smoother no longer reads. Kept whatever ``index``,
         so that the frames to come are measured and mended exactly as
@@ -1413,7 +1408,7 @@ class StereoOdometry:
             keep.add(self._reference[0])
         recent = max(0, newest - _MAX_MENDED_FRAMES)
         for k in range(newest, recent - 1, -1):  # the frame a reliable one would mend from, and its reference
-            if self.qualities.holds(k) and self.qualities[k].reliable:
+            if self.qualities[k].reliable:  # (the last _MAX_MENDED_FRAMES frames are never forgotten)
                 keep.add(self.qualities[k].reference)
                 break
         drop = [k for k in self.poses.held() if k < min(index, recent) and k not in keep]
@@ -1511,8 +1506,7 @@ class StereoOdometry:
         per_frame = _step_of(measured, index - reference)
         end = per_frame[:3, 3]
         begin = end
-        before = self.qualities[start]
-        if start >= 1 and before.status in ("ok", "static"):
+        if start >= 1 and self.qualities[start].status in ("ok", "static"):
             begin = self._frame_step(start)[:3, 3]
         gap = index - start
         steps = [invert_pose(self.poses[k - 1]) @ self.poses[k] for k in range(start + 1, reference + 1)]

@@ -971,14 +971,21 @@ class LabelerNode(Node):
         out_of_order = self._poses.out_of_order
         self._poses = PoseBuffer(_POSE_CAPACITY)
         self._poses.out_of_order = out_of_order  # keep the counter running
-        if self._awaiting_pose:
-            self._drop("session_reset", "time jump", len(self._awaiting_pose))
-            self._awaiting_pose.clear()
         self._newest_frame_ns = None
+        self._end_session("time jump", keep_camera=False)
+
+    def _end_session(self, reason: str, *, keep_camera: bool) -> None:
+        """Drop the views waiting for a pose (``session_reset``) and the session; the next frame starts a new
+        one (and, with ``pose_source: odometry``, a new odometry). ``keep_camera`` False: the camera line is
+        logged again."""
+        if self._awaiting_pose:
+            self._drop("session_reset", reason, len(self._awaiting_pose))
+            self._awaiting_pose.clear()
         with self._lock:
             self._session = None
-            self._camera = None
             self._camera_key = None
+            if not keep_camera:
+                self._camera = None
 
     def _on_frame(self, match: Match) -> None:
         """One synchronised frame: convert, match, publish depth and disparity, queue the view for its pose."""
@@ -1145,12 +1152,7 @@ class LabelerNode(Node):
         except Exception as exc:
             self._drop("odometry_error", f"frame at {stamp_ns} ns: {type(exc).__name__}: {exc}; starting over")
             self._odometry = None
-            if self._awaiting_pose:
-                self._drop("session_reset", "odometry error", len(self._awaiting_pose))
-                self._awaiting_pose.clear()
-            with self._lock:
-                self._session = None
-                self._camera_key = None
+            self._end_session("odometry error", keep_camera=True)
             return False
         return self._apply_decisions(decisions, stamp_ns)
 
