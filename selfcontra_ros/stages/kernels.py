@@ -1261,6 +1261,7 @@ def lookup_votes_kernel(
     min_angle_deg: float,
     negatives_from_any: np.ndarray,
     positive_accuracy_ratio: float,
+    occlusion_votes: np.ndarray,
 ) -> None:
     """Stage 2, lookup: add one reference view's positive or occlusion vote to each valid query pixel, in place.
 
@@ -1277,7 +1278,8 @@ def lookup_votes_kernel(
     negative: ``-support_r / sqrt(u_r)``. Either of these, or a measurement allowed to
     vote positive that agrees only between the two tolerances, decides the
     reference's vote; ``pending[i]`` is set where nothing decided it (the splat's
-    turn, :func:`free_space_votes_kernel`).
+    turn, :func:`free_space_votes_kernel`). An occlusion casts its vote only where ``occlusion_votes[i]`` (a
+    bool per query pixel); elsewhere it still decides the reference's vote, as no vote.
 
     ``vote_sum[i] += vote`` and ``voted[i] |= vote != 0``: called once per
     reference in window order, the sums are those of adding whole vote arrays
@@ -1334,7 +1336,7 @@ def lookup_votes_kernel(
                         > min_angle_deg
                     ):
                         vote = weight
-                elif far and in_front and may_negative:
+                elif far and in_front and may_negative and occlusion_votes[i]:
                     vote = -weight
                 # A lookup that agrees only roughly (between the two tolerances) decides too: no splat vote then.
                 decided = (not far and may_positive) or (far and in_front and may_negative)

@@ -62,6 +62,7 @@ from selfcontra_ros.window import View, support_count
 
 __all__ = [
     "NEGATIVE_VOTERS",
+    "OCCLUSION_VOTES",
     "VotingResult",
     "consistency_voting",
     "contradicted_positives",
@@ -80,6 +81,12 @@ __all__ = [
 #: evidence matters, and which can never be positive), the more accurate ones elsewhere. Needs
 #: ``edge_jump_px > 0``; otherwise it is ``more_accurate``.
 NEGATIVE_VOTERS = ("more_accurate", "any", "band")
+
+#: Where a lookup's occlusion (``X_q`` in front of the reference's measured surface) casts a negative vote
+#: (``occlusion_votes``): ``everywhere`` (paper), or only in the query's own :func:`fattening_band` (``band``;
+#: needs ``edge_jump_px > 0``, otherwise it is ``everywhere``). Outside the band the occlusion still decides
+#: the reference's vote, as no vote.
+OCCLUSION_VOTES = ("everywhere", "band")
 
 
 @dataclass(frozen=True)
@@ -111,6 +118,7 @@ def _reference_votes(
     negative_sigma: float,
     min_angle_deg: float,
     negatives_from_any: NDArray[np.bool_],
+    occlusion_votes: NDArray[np.bool_],
     free_space: bool,
     free_space_neighbourhood: int,
     splat_bits: NDArray[np.uint64] | None = None,
@@ -128,7 +136,8 @@ def _reference_votes(
     (:func:`selfcontra_ros.stages.kernels.free_space_votes_kernel`). ``splat_bits`` (default the reference's
     ``support_bits``) are the support the splat and its votes use: zero leaves a reference point out.
     ``negatives_from_any`` (flat, per query pixel): where any supported reference measurement may vote negative,
-    not only a more accurate one. ``free_space_sum`` / ``free_space_voted`` (flat, both or neither): where the
+    not only a more accurate one. ``occlusion_votes`` (flat, per query pixel): where a lookup's occlusion votes.
+    ``free_space_sum`` / ``free_space_voted`` (flat, both or neither): where the
     free-space votes go instead of ``vote_sum`` / ``voted``. ``positive_accuracy_ratio``: a lookup votes
     positive where ``u_r < positive_accuracy_ratio * u_q`` (1: only a more accurate one, the paper).
     """
@@ -163,6 +172,7 @@ def _reference_votes(
         float(min_angle_deg),
         negatives_from_any,
         float(positive_accuracy_ratio),
+        occlusion_votes,
     )
     if not free_space:
         return
@@ -315,6 +325,7 @@ def consistency_voting(
     hole_margin_px: float = 0.0,
     free_space_min_views: int = 1,
     positive_accuracy_ratio: float = 1.0,
+    occlusion_votes: str = "everywhere",
 ) -> VotingResult:
     """Stage 2 for one query view against the reference views ``refs``.
 
@@ -358,6 +369,9 @@ def consistency_voting(
         positive_accuracy_ratio: a reference measurement may vote *positive* where ``u_r`` is below this many
             times ``u_q`` (>= 1); 1 = the paper (only a more accurate one). Negative votes keep
             ``negative_voters``.
+        occlusion_votes: where a lookup's occlusion (``X_q`` in front of the reference's measured surface)
+            votes negative, one of :data:`OCCLUSION_VOTES`: ``everywhere`` (paper) or ``band`` (only in the
+            query's fattening band of ``edge_jump_px``).
     """
     n = query.valid.size
     mode = tolerance_code(tolerance)
@@ -365,12 +379,18 @@ def consistency_voting(
         raise ValueError(f"positive_accuracy_ratio must be >= 1, got {positive_accuracy_ratio}")
     if negative_voters not in NEGATIVE_VOTERS:
         raise ValueError(f"negative_voters must be one of {NEGATIVE_VOTERS}, got {negative_voters!r}")
+    if occlusion_votes not in OCCLUSION_VOTES:
+        raise ValueError(f"occlusion_votes must be one of {OCCLUSION_VOTES}, got {occlusion_votes!r}")
     if negative_voters == "any":
         from_any = np.ones(n, dtype=bool)
     elif negative_voters == "band" and edge_jump_px > 0:
         from_any = view_band(query, camera, edge_jump_px, edge_occluded_side_px, edge_other_px)
     else:
         from_any = np.zeros(n, dtype=bool)
+    if occlusion_votes == "band" and edge_jump_px > 0:
+        occluding = view_band(query, camera, edge_jump_px, edge_occluded_side_px, edge_other_px)
+    else:
+        occluding = np.ones(n, dtype=bool)
     full_sum = np.zeros(n)
     full_voted = np.zeros(n, dtype=bool)
     # Free-space votes apart when the number of views casting them matters: their sum over the references, and
@@ -404,6 +424,7 @@ def consistency_voting(
             negative_sigma=sigma_max if negative_sigma is None else negative_sigma,
             min_angle_deg=min_angle_deg,
             negatives_from_any=from_any,
+            occlusion_votes=occluding,
             free_space=free_space_votes,
             free_space_neighbourhood=free_space_neighbourhood,
             splat_bits=splat_bits,

@@ -548,3 +548,23 @@ def test_no_positive_label_near_a_hole() -> None:
     assert np.all(off[near] == POSITIVE)  # the references confirm these points ...
     assert np.all(on[near] == UNKNOWN)  # ... but near the hole they abstain
     np.testing.assert_array_equal(on[~near], off[~near])
+
+
+def test_occlusion_votes_outside_the_band_are_left_out_when_asked() -> None:
+    """A nearer reference that measured the wall too far says the correct query point floats in front of it.
+
+    The paper counts that occlusion against the query; ``occlusion_votes="band"`` counts it only in the query's
+    own fattening band, and the wall has none (that the band's occlusions still vote is checked against the
+    slow reference in ``test_voting_kernel``).
+    """
+    query = view_at(0.0)
+    wrong_ref = _supported(view_at(20.0, radius=4.0, scale=0.7))  # 43 % too far, still more accurate than the query
+    assert np.all(wrong_ref.u[wrong_ref.valid].max() < query.u[query.valid].min())
+    shape = (CAMERA.height, CAMERA.width)
+    band = {"edge_jump_px": 4.0, "edge_occluded_side_px": 16, "edge_other_px": 3}
+    paper = consistency_voting(query, [wrong_ref], CAMERA, tolerance="sum", **band, **KW)
+    assert np.all(paper.labels.reshape(shape)[CENTRE] == NEGATIVE)
+    in_band = consistency_voting(query, [wrong_ref], CAMERA, tolerance="sum", occlusion_votes="band", **band, **KW)
+    assert not np.any(in_band.labels == NEGATIVE)
+    with pytest.raises(ValueError, match="occlusion_votes"):
+        consistency_voting(query, [wrong_ref], CAMERA, tolerance="sum", occlusion_votes="nowhere", **KW)

@@ -134,15 +134,18 @@ def _slow_votes(
     free_space: bool,
     radius: int,
     band_px: float = 0.0,
+    occlusion_votes: bool | np.ndarray = True,
 ) -> tuple[np.ndarray, np.ndarray]:
     """One reference's vote per query pixel, pixel by pixel, as DESIGN section 3 states the rules.
 
     ``negatives_from_any``: for every query pixel, or per query pixel (flat bool), whether any supported
-    reference measurement may vote negative. ``band_px > 0``: the reference's fattening band with that jump
-    (16 px to the left, 3 elsewhere) is kept out of the free-space z-buffer. Returns the votes and the pixels
-    whose angle or range comparison was a tie (module docstring).
+    reference measurement may vote negative. ``occlusion_votes``: likewise, whether an occlusion found by the
+    lookup votes (elsewhere it decides the reference's vote as no vote). ``band_px > 0``: the reference's
+    fattening band with that jump (16 px to the left, 3 elsewhere) is kept out of the free-space z-buffer.
+    Returns the votes and the pixels whose angle or range comparison was a tie (module docstring).
     """
     from_any = np.broadcast_to(np.asarray(negatives_from_any, dtype=bool), query.valid.shape)
+    occluding = np.broadcast_to(np.asarray(occlusion_votes, dtype=bool), query.valid.shape)
     votes = np.zeros(query.valid.size)
     doubtful = np.zeros(query.valid.size, dtype=bool)
     ref_from_query = ref.from_view(query)
@@ -175,7 +178,7 @@ def _slow_votes(
                     vote = weight if min_angle_deg <= 0 or angle > min_angle_deg else 0.0
                 elif distance > negative_sigma and range_q < range_r:
                     doubtful[q] = range_r - range_q <= DOUBT * range_r
-                    vote = -weight  # occlusion: X_q blocks the reference's line of sight
+                    vote = -weight if occluding[q] else 0.0  # occlusion: X_q blocks the reference's line of sight
                 elif distance <= negative_sigma and accurate:
                     vote = 0.0  # agrees roughly: decided, no vote
                 elif distance > negative_sigma:
@@ -217,6 +220,7 @@ OPTIONS = [
     pytest.param({"band_px": 4.0, "voters": "band"}, id="band-voters"),
     pytest.param({"band_px": 4.0, "voters": "band", "min_views": 2}, id="free-space-min-views"),
     pytest.param({"min_views": 2}, id="free-space-min-views-no-band"),
+    pytest.param({"band_px": 4.0, "voters": "any", "occlusion": "band"}, id="occlusion-votes-in-band"),
     pytest.param({"radius": 0, "positive_sigma": 2.0, "negative_sigma": 2.0}, id="paper"),
 ]
 
@@ -234,23 +238,31 @@ def test_consistency_voting_matches_slow_reference(options: dict) -> None:
         "radius": 2,
         "band_px": 0.0,
         "min_views": 1,
+        "occlusion": "everywhere",
     } | options
     voters = o.pop("voters")
     min_views = o.pop("min_views")
+    occlusion = o.pop("occlusion")
     # Where any reference may vote negative: everywhere, nowhere, or in the query's own fattening band.
     from_any = {"any": True, "more_accurate": False}.get(voters, False)
     if voters == "band":
         from_any = _band(query, o["band_px"])
         assert from_any.sum() > 50  # the band must hold enough pixels for the test to mean something
+    # Where a lookup's occlusion votes: everywhere, or in the query's own fattening band.
+    occluding = _band(query, o["band_px"]) if occlusion == "band" else True
+    silenced = 0  # occlusion votes the band leaves out
     expected_sum = np.zeros(query.valid.size)
     expected_voted = np.zeros(query.valid.size, dtype=bool)
     doubtful = np.zeros(query.valid.size, dtype=bool)
     free_space_sum = np.zeros(query.valid.size)
     free_space_views = np.zeros(query.valid.size, dtype=int)
     for ref in refs:  # in window order, as the votes are summed
-        votes, ties = _slow_votes(query, ref, **o, negatives_from_any=from_any)
+        votes, ties = _slow_votes(query, ref, **o, negatives_from_any=from_any, occlusion_votes=occluding)
         # A pixel's free-space vote is what the splat adds where the lookup left it undecided.
-        lookup, _ = _slow_votes(query, ref, **(o | {"free_space": False}), negatives_from_any=from_any)
+        lookup_only = o | {"free_space": False}
+        lookup, _ = _slow_votes(query, ref, **lookup_only, negatives_from_any=from_any, occlusion_votes=occluding)
+        if occlusion == "band":
+            silenced += int((_slow_votes(query, ref, **lookup_only, negatives_from_any=from_any)[0] != lookup).sum())
         free_space_sum += votes - lookup
         free_space_views += votes != lookup
         expected_sum += lookup
@@ -282,7 +294,10 @@ def test_consistency_voting_matches_slow_reference(options: dict) -> None:
         edge_other_px=3,
         free_space_band=o["band_px"] > 0,
         free_space_min_views=min_views,
+        occlusion_votes=occlusion,
     )
+    if occlusion == "band":  # the case must leave some occlusion votes out
+        assert silenced > 5
     assert doubtful.mean() < 0.01, f"{int(doubtful.sum())} pixels decided at a tie"
     clear = ~doubtful
     np.testing.assert_array_equal(result.voted[clear], expected_voted[clear])
