@@ -381,16 +381,19 @@ def consistency_voting(
         raise ValueError(f"negative_voters must be one of {NEGATIVE_VOTERS}, got {negative_voters!r}")
     if occlusion_votes not in OCCLUSION_VOTES:
         raise ValueError(f"occlusion_votes must be one of {OCCLUSION_VOTES}, got {occlusion_votes!r}")
+    # The query's own fattening band (none without edge_jump_px), which several rules below read.
+    query_band = (
+        view_band(query, camera, edge_jump_px, edge_occluded_side_px, edge_other_px)
+        if edge_jump_px > 0
+        else np.zeros(n, dtype=bool)
+    )
     if negative_voters == "any":
         from_any = np.ones(n, dtype=bool)
-    elif negative_voters == "band" and edge_jump_px > 0:
-        from_any = view_band(query, camera, edge_jump_px, edge_occluded_side_px, edge_other_px)
+    elif negative_voters == "band":
+        from_any = query_band
     else:
         from_any = np.zeros(n, dtype=bool)
-    if occlusion_votes == "band" and edge_jump_px > 0:
-        occluding = view_band(query, camera, edge_jump_px, edge_occluded_side_px, edge_other_px)
-    else:
-        occluding = np.ones(n, dtype=bool)
+    occluding = query_band if occlusion_votes == "band" and edge_jump_px > 0 else np.ones(n, dtype=bool)
     full_sum = np.zeros(n)
     full_voted = np.zeros(n, dtype=bool)
     # Free-space votes apart when the number of views casting them matters: their sum over the references, and
@@ -436,9 +439,7 @@ def consistency_voting(
             fs_views += fs_voted
             fs_voted.fill(False)
     if fs_sum is not None:
-        enough = fs_views >= free_space_min_views
-        if edge_jump_px > 0:
-            enough |= view_band(query, camera, edge_jump_px, edge_occluded_side_px, edge_other_px)
+        enough = (fs_views >= free_space_min_views) | query_band
         keep = enough & (fs_views > 0)
         full_sum[keep] += fs_sum[keep]
         full_voted |= keep
@@ -448,8 +449,7 @@ def consistency_voting(
         positive &= query.reliable  # an ambiguous match abstains from positives
     if min_query_support > 0:
         positive &= support_count(query.support_bits) >= min_query_support
-    if edge_jump_px > 0:
-        positive &= ~view_band(query, camera, edge_jump_px, edge_occluded_side_px, edge_other_px)
+    positive &= ~query_band
     if hole_margin_px > 0:
         positive &= ~hole_margin(query.disparity.reshape(camera.height, camera.width), hole_margin_px).ravel()
     labels[positive] = POSITIVE
