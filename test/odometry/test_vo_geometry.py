@@ -502,6 +502,28 @@ def test_a_windows_offset_estimate_knows_its_own_spread(
         assert len(gated._offset_windows) == int(counted)
 
 
+def test_the_offset_estimate_follows_the_latest_windows() -> None:
+    """A rig whose offset changes (0.3 px for 10 windows, then 0): with ``offset_max_windows`` 5 the applied
+    offset returns to the configured 0 once the old windows have left, and no more than 5 are kept; with 0
+    (every window since the start) the old ones hold it near the mean of all, 0.15 px."""
+    for max_windows in (5, 0):
+        vo = StereoOdometry(CAMERA, replace(VOParams(), offset_max_windows=max_windows))
+        rng = np.random.default_rng(0)
+        for value in 0.3 + 0.02 * rng.standard_normal(10):
+            vo._add_offset_window(float(value))
+        assert abs(vo.disparity_offset - 0.3) < 0.03, vo.disparity_offset
+        for value in 0.02 * rng.standard_normal(10):
+            vo._add_offset_window(float(value))
+        mean, _, n = vo.offset_estimate()
+        if max_windows:
+            assert n == 5
+            assert abs(mean) < 0.05, mean
+            assert abs(vo.disparity_offset) < 1e-9, vo.disparity_offset
+        else:
+            assert n == 20
+            assert abs(vo.disparity_offset - 0.15) < 0.03, vo.disparity_offset
+
+
 def test_a_reliable_frame_among_unreliable_ones_is_marked_isolated() -> None:
     """A reliable frame with no other reliable frame within ``isolated_frames`` (2) on either side is
     reported unreliable, pose untouched; the first frame counts as a neighbour and is never marked."""
