@@ -488,6 +488,11 @@ class VOParams:
                 raise OdometryError(f"VOParams.{name} must be > 0, got {getattr(self, name)!r}")
         if int(self.offset_min_windows) < 2:
             raise OdometryError(f"VOParams.offset_min_windows must be >= 2, got {self.offset_min_windows!r}")
+        if 0 < int(self.offset_max_windows) < int(self.offset_min_windows):
+            raise OdometryError(
+                f"VOParams.offset_max_windows must be 0 (every window) or >= offset_min_windows "
+                f"({self.offset_min_windows}), got {self.offset_max_windows!r}"
+            )
         for name in (
             "offset_straddle_px", "offset_window_std_px", "length_gate_sigmas", "isolated_frames",
             "smoothing_lag_frames", "stale_velocity_frames", "offset_max_windows",

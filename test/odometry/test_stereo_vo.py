@@ -457,6 +457,8 @@ def test_a_known_disparity_offset_is_applied_and_checked() -> None:
         {"offset_min_windows": 1},
         {"offset_straddle_px": -1.0},
         {"offset_window_std_px": -0.1},
+        {"offset_max_windows": -1},
+        {"offset_max_windows": 2},  # fewer than offset_min_windows (3): never applied
         {"isolated_frames": -1},
     ):
         with pytest.raises(OdometryError):
