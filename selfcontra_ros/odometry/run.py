@@ -51,6 +51,7 @@ from selfcontra_ros.odometry.stereo_vo import (
     FrameQuality,
     IsolationGate,
     OdometryError,
+    StereoCache,
     StereoOdometry,
     VOParams,
     mark_isolated,
@@ -96,7 +97,10 @@ def estimate_poses(
     (``VOParams.estimate_disparity_offset``) ended away from
     ``VOParams.disparity_offset_px``, the sequence is run a second time with
     the estimate applied from the first frame on (the first pass applies it
-    only once enough windows agree) and estimation off.
+    only once enough windows agree) and estimation off. The second pass
+    reuses the first one's stereo matching (:class:`~selfcontra_ros.odometry.stereo_vo.StereoCache`:
+    the same poses, in about half the time), so the triples must be the
+    same at each call.
 
     Returns:
         (N, 4, 4) poses ``T_world_left`` (metres, after the windowed
@@ -112,7 +116,8 @@ def estimate_poses(
     if not callable(frames):
         vo = _run_odometry(camera, frames, params)
     else:
-        vo = _run_odometry(camera, frames(), params)
+        cache = StereoCache() if params.estimate_disparity_offset else None
+        vo = _run_odometry(camera, frames(), params, cache)
         second = second_pass_params(vo, params)
         if second is not None:
             _, error, windows = vo.offset_estimate()
@@ -120,7 +125,7 @@ def estimate_poses(
                 "disparity offset %+.3f px (standard error %.3f px over %d windows): second pass with it applied",
                 vo.disparity_offset, error, windows,
             )  # fmt: skip
-            vo = _run_odometry(camera, frames(), second)
+            vo = _run_odometry(camera, frames(), second, cache)
     poses = vo.smoothed_poses()
     qualities = mark_isolated(vo.qualities, vo.params)
     check_usable(qualities)
@@ -135,8 +140,10 @@ def second_pass_params(vo: StereoOdometry, params: VOParams) -> VOParams | None:
     return replace(params, disparity_offset_px=vo.disparity_offset, estimate_disparity_offset=False)
 
 
-def _run_odometry(camera: StereoCamera, frames: Iterable[_Triple], params: VOParams) -> StereoOdometry:
-    vo = StereoOdometry(camera, params)
+def _run_odometry(
+    camera: StereoCamera, frames: Iterable[_Triple], params: VOParams, cache: StereoCache | None = None
+) -> StereoOdometry:
+    vo = StereoOdometry(camera, params, stereo_cache=cache)
     for stamp, left, right in frames:
         vo.add(left, right, stamp)
     if not vo.poses:

@@ -75,6 +75,8 @@ __all__ = [
     "IsolationGate",
     "OdometryError",
     "OdometryResult",
+    "StereoCache",
+    "StereoMatches",
     "StereoOdometry",
     "VOParams",
     "mark_isolated",
@@ -584,6 +586,84 @@ class _Features:
     straddle: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
 
 
+@dataclass(frozen=True)
+class StereoMatches:
+    """One pair's stereo matches before the disparity offset: what a second pass over the same images reuses.
+
+    Row ``i`` of each array is candidate ``i``: a left ORB feature matched to
+    a right corner on its row whose sub-pixel right position stayed on the
+    row. The gates the offset moves (disparity range, refinement distance)
+    are applied by :meth:`StereoOdometry._stereo` with the offset of its run.
+    """
+
+    uv: F64  # (M, 2) left pixel positions
+    descriptors: NDArray[np.uint8]  # (M, 32) ORB
+    guess_u: F64  # (M,) the matched right corner's column
+    found_u: F64  # (M,) the refined right column, as the images show it (no offset)
+    detected: int  # left features detected (bucketed), matched or not
+
+    @classmethod
+    def empty(cls, detected: int) -> StereoMatches:
+        """No match (no corner in one of the images); ``detected`` left features."""
+        return cls(np.zeros((0, 2)), np.zeros((0, 32), np.uint8), np.zeros(0), np.zeros(0), detected)
+
+    @property
+    def nbytes(self) -> int:
+        """Memory held by the arrays, bytes."""
+        return sum(a.nbytes for a in (self.uv, self.descriptors, self.guess_u, self.found_u))
+
+
+class StereoCache:
+    """Stereo matches of one sequence's frames by frame index, for a second pass over the same images.
+
+    The offline odometry runs a sequence twice when its disparity offset
+    estimate becomes significant (:func:`~selfcontra_ros.odometry.run.estimate_poses`);
+    the second pass differs only in the offset, which moves every right
+    position by the same amount after the matching. Its stereo matching
+    (ORB on both images, row matching, the sub-pixel step: half of a pass's
+    time) is therefore the first pass's, taken from here, and the poses are
+    the same as when measured again (a test checks it). Entries are valid
+    only for the same frames in the same order and for parameters that
+    differ at most in ``disparity_offset_px`` and ``estimate_disparity_offset``;
+    other parameters miss. At most ``max_bytes`` of matches are kept (about
+    50 kB a KITTI-size frame); frames beyond it are measured again.
+    """
+
+    def __init__(self, max_bytes: int = 512 * 2**20) -> None:
+        self.max_bytes = int(max_bytes)
+        self.nbytes = 0
+        self.hits = 0
+        self._matches: dict[int, StereoMatches] = {}
+        self._params: VOParams | None = None
+
+    def __len__(self) -> int:
+        return len(self._matches)
+
+    @staticmethod
+    def _front_end(params: VOParams) -> VOParams:
+        return replace(params, disparity_offset_px=0.0, estimate_disparity_offset=False)
+
+    def get(self, index: int, params: VOParams) -> StereoMatches | None:
+        """The matches stored for frame ``index`` under ``params`` (see the class), or None."""
+        if self._params is None or self._front_end(params) != self._params:
+            return None
+        matches = self._matches.get(index)
+        self.hits += matches is not None
+        return matches
+
+    def put(self, index: int, params: VOParams, matches: StereoMatches) -> None:
+        """Store frame ``index``'s matches measured under ``params``, unless the cache is full or holds
+        another parameter set's."""
+        front_end = self._front_end(params)
+        if self._params is None:
+            self._params = front_end
+        if front_end != self._params or self.nbytes + matches.nbytes > self.max_bytes:
+            return
+        previous = self._matches.get(index)
+        self.nbytes += matches.nbytes - (previous.nbytes if previous is not None else 0)
+        self._matches[index] = matches
+
+
 @dataclass
 class _WindowFrame:
     """A reliable frame kept for the windowed bundle adjustment."""
@@ -715,9 +795,14 @@ class StereoOdometry:
     :attr:`poses` holds the final values (what offline runs write).
     """
 
-    def __init__(self, camera: StereoCamera, params: VOParams | None = None) -> None:
+    def __init__(
+        self, camera: StereoCamera, params: VOParams | None = None, *, stereo_cache: StereoCache | None = None
+    ) -> None:
         self.camera = camera
         self.params = params or VOParams()
+        #: The stereo matches of earlier passes over the same frames (frame index = the frame's position in
+        #: this run), reused instead of measured; filled with this run's when set (see :class:`StereoCache`).
+        self.stereo_cache = stereo_cache
         p = self.params
         # Many more corners than kept: bucketing then picks the strongest per cell.
         self._orb = cv2.ORB.create(
@@ -850,12 +935,36 @@ class StereoOdometry:
         return found.reshape(-1, 2).astype(np.float64), status.reshape(-1).astype(bool)
 
     def _stereo(self, left: NDArray[np.uint8], right: NDArray[np.uint8]) -> tuple[_Features, int]:
-        """Stereo features of a pair and the number of left features detected."""
+        """Stereo features of a pair and the number of left features detected.
+
+        The matches before the disparity offset (:class:`StereoMatches`) come
+        from :attr:`stereo_cache` when it holds this frame (a second pass over
+        the same images), else they are measured (and stored there when a
+        cache is set); the offset and the gates it moves are applied here.
+        """
+        p = self.params
+        index = len(self.poses)
+        cache = self.stereo_cache
+        matches = cache.get(index, p) if cache is not None else None
+        if matches is None:
+            matches = self._stereo_matches(left, right)
+            if cache is not None:
+                cache.put(index, p, matches)
+        right_u = matches.found_u - self._offset  # u_left - u_right + offset is the disparity
+        d = matches.uv[:, 0] - right_u
+        ok = (np.abs(right_u - matches.guess_u) <= 3.0) & (d >= p.min_disparity) & (d <= p.max_disparity)
+        uv, d = matches.uv[ok], d[ok]
+        straddle = self._straddles(left, right, uv, d)
+        return _Features(uv, d, matches.descriptors[ok], self._triangulate(uv, d), straddle=straddle), matches.detected
+
+    def _stereo_matches(self, left: NDArray[np.uint8], right: NDArray[np.uint8]) -> StereoMatches:
+        """A pair's stereo matches before the disparity offset: ORB on both images, matched along the rows,
+        the right positions refined (``params.subpixel``) and kept where the refinement stayed on the row."""
         p = self.params
         uv, descriptors, octave = self._detect(left)
         ruv, rdesc = self._all_corners(right)
         if uv.shape[0] == 0 or ruv.shape[0] == 0:
-            return _Features(np.zeros((0, 2)), np.zeros(0), np.zeros((0, 32), np.uint8), np.zeros((0, 3))), len(uv)
+            return StereoMatches.empty(len(uv))
         # Epipolar band: ORB positions of coarser octaves are coarser, so the band widens with the octave.
         band = 2.0 * 1.2 ** octave.astype(np.float64) + p.epipolar_tolerance_px
         qi, ti = _row_candidates(uv[:, 1], ruv[:, 1], band)
@@ -864,14 +973,10 @@ class StereoOdometry:
         inside &= np.abs(uv[qi, 1] - ruv[ti, 1]) <= band[qi]
         qi, ti = self._ratio_matches(descriptors, rdesc, qi[inside], ti[inside])
         guess = np.column_stack([ruv[ti, 0], uv[qi, 1]])
-        refined, ok = self._refine_right(left, right, uv[qi], guess)
-        d = uv[qi, 0] - refined[:, 0]
-        ok &= np.abs(refined[:, 1] - uv[qi, 1]) <= p.epipolar_tolerance_px
-        ok &= np.abs(refined[:, 0] - guess[:, 0]) <= 3.0
-        ok &= (d >= p.min_disparity) & (d <= p.max_disparity)
-        qi, d = qi[ok], d[ok]
-        straddle = self._straddles(left, right, uv[qi], d)
-        return _Features(uv[qi], d, descriptors[qi], self._triangulate(uv[qi], d), straddle=straddle), len(uv)
+        found, ok = self._refine_right_raw(left, right, uv[qi], guess)
+        ok &= np.abs(found[:, 1] - uv[qi, 1]) <= p.epipolar_tolerance_px
+        qi = qi[ok]
+        return StereoMatches(uv[qi], descriptors[qi], guess[ok, 0], found[ok, 0], len(uv))
 
     def _straddles(
         self, left: NDArray[np.uint8], right: NDArray[np.uint8], uv: F64, disparity: F64
@@ -903,16 +1008,22 @@ class StereoOdometry:
     ) -> tuple[F64, NDArray[np.bool_]]:
         """Sub-pixel right positions (N, 2) of left features ``uv`` started at ``guess``, by ``params.subpixel``,
         moved by the disparity offset (:attr:`disparity_offset`)."""
-        method = self.params.subpixel
-        if method == "lk":
-            found, ok = self._lk(left, right, uv, guess, self.params.stereo_window)
-        elif method == "none":
-            found, ok = guess.copy(), np.ones(len(uv), dtype=bool)
-        else:
-            found, ok = self._parabola(left, right, uv, guess)
+        found, ok = self._refine_right_raw(left, right, uv, guess)
         # The disparity offset (u_left - u_right + offset is the disparity): the right position moves left.
         found[:, 0] -= self._offset
         return found, ok
+
+    def _refine_right_raw(
+        self, left: NDArray[np.uint8], right: NDArray[np.uint8], uv: F64, guess: F64
+    ) -> tuple[F64, NDArray[np.bool_]]:
+        """Sub-pixel right positions (N, 2) of left features ``uv`` started at ``guess``, by ``params.subpixel``,
+        as the images show them (no offset)."""
+        method = self.params.subpixel
+        if method == "lk":
+            return self._lk(left, right, uv, guess, self.params.stereo_window)
+        if method == "none":
+            return guess.copy(), np.ones(len(uv), dtype=bool)
+        return self._parabola(left, right, uv, guess)
 
     def _parabola(
         self, left: NDArray[np.uint8], right: NDArray[np.uint8], uv: F64, guess: F64

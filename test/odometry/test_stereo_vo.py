@@ -30,6 +30,7 @@ from selfcontra_ros.odometry.stereo_vo import (
     FrameQuality,
     OdometryError,
     OdometryResult,
+    StereoCache,
     StereoOdometry,
     VOParams,
     mark_isolated,
@@ -437,6 +438,40 @@ def test_a_disparity_offset_is_estimated_and_undone(street_long: tuple, shift_px
     before, after = abs(_path_scale_error(plain, truth)), abs(_path_scale_error(estimated, truth))
     assert before > 0.01, before  # the shift matters: over 1 % on a street whose points are 5-40 m away
     assert after < 0.5 * before, (before, after)
+
+
+def test_the_second_pass_reuses_the_first_passs_stereo_matching(street_long: tuple) -> None:
+    """A second pass over the same frames (another disparity offset, estimation off) takes its stereo
+    matches from the first pass's cache and gives exactly the poses, qualities and features it gives when
+    it measures them again; other parameters miss the cache, and a full cache stores no more."""
+    camera, frames, _ = street_long
+    pairs = [(left, _shift_right(right, 0.5)) for left, right in frames[:12]]
+
+    def run(params: VOParams, cache: StereoCache | None) -> StereoOdometry:
+        vo = StereoOdometry(camera, params, stereo_cache=cache)
+        for k, (left, right) in enumerate(pairs):
+            vo.add(left, right, float(k))
+        return vo
+
+    cache = StereoCache()
+    run(VOParams(), cache)  # the first pass, estimating: fills the cache
+    assert len(cache) == len(pairs) and cache.hits == 0 and cache.nbytes > 0
+    second = replace(VOParams(), disparity_offset_px=0.45, estimate_disparity_offset=False)
+    reused, measured = run(second, cache), run(second, None)
+    assert cache.hits == len(pairs)
+    # Same computation on the same images: equal to the last bit (compared with a tolerance far below any
+    # figure, so that an equal result computed in another order still passes).
+    np.testing.assert_allclose(np.asarray(reused.poses), np.asarray(measured.poses), rtol=0, atol=1e-9)
+    assert [q.status for q in reused.qualities] == [q.status for q in measured.qualities]
+    assert [q.inliers for q in reused.qualities] == [q.inliers for q in measured.qualities]
+    assert all(q.disparity_offset_px == 0.45 for q in reused.qualities)
+    assert sum(q.reliable for q in reused.qualities) >= len(pairs) - 2  # a real run, not an empty one
+    # Front-end parameters other than the offset miss: a different feature count measures again.
+    other = replace(second, features=second.features // 2)
+    assert cache.get(0, other) is None and cache.get(0, second) is not None
+    full = StereoCache(max_bytes=0)
+    run(VOParams(), full)
+    assert len(full) == 0 and full.nbytes == 0
 
 
 def test_a_known_disparity_offset_is_applied_and_checked() -> None:
