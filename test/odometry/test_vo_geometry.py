@@ -502,6 +502,40 @@ def test_a_windows_offset_estimate_knows_its_own_spread(
         assert len(gated._offset_windows) == int(counted)
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_reduced_system_solver_reaches_the_least_squares_minimum(seed: int) -> None:
+    """:meth:`_WindowProblem.solve` (Levenberg-Marquardt with the points eliminated) from a disturbed start
+    reaches the minimum scipy's least_squares finds with tight tolerances: the same cost, a gradient near 0,
+    the same poses; points whose every observation weighs 0 stay where they started."""
+    from scipy.optimize import least_squares
+
+    rng = np.random.default_rng(seed)
+    problem, truth = _offset_window(rng, 3.0, 30.0, 0.8, 0.2, 0.3)
+    weight = np.ones(problem.fi.size)
+    weight[np.isin(problem.pi, [5, 17])] = 0.0  # two tracks left out entirely
+    weight[rng.random(weight.size) < 0.05] = 0.0  # and some single observations
+    problem = problem.with_right(problem.u_right, weight)
+    x0 = truth.copy()
+    x0[: 6 * problem.n_free] += rng.normal(0.0, 0.01, 6 * problem.n_free)  # 0.6 degrees, 1 cm
+    x0[6 * problem.n_free :] *= 1.0 + rng.normal(0.0, 0.03, x0.size - 6 * problem.n_free)
+    x, res = problem.solve(x0)
+    np.testing.assert_allclose(res, problem.residuals(x), rtol=0, atol=1e-12)
+    reference = least_squares(
+        problem.residuals, x0, jac=problem.jacobian, method="trf", x_scale="jac", ftol=1e-14, xtol=1e-14,
+        gtol=1e-14, max_nfev=500, tr_solver="lsmr",
+    )  # fmt: skip
+    cost, reference_cost = float(res @ res), float(reference.fun @ reference.fun)
+    assert cost <= reference_cost * (1.0 + 1e-6), (cost, reference_cost)
+    gradient = problem.jacobian(x).T @ res
+    assert np.abs(gradient).max() <= 1e-4 * np.abs(problem.jacobian(x0).T @ problem.residuals(x0)).max()
+    n_cam = 6 * problem.n_free
+    np.testing.assert_allclose(x[:n_cam], reference.x[:n_cam], rtol=0, atol=1e-5)  # radians, metres: 10 um
+    for track in (5, 17):
+        np.testing.assert_array_equal(
+            x[n_cam + 3 * track : n_cam + 3 * track + 3], x0[n_cam + 3 * track : n_cam + 3 * track + 3]
+        )
+
+
 def test_the_offset_estimate_follows_the_latest_windows() -> None:
     """A rig whose offset changes (0.3 px for 10 windows, then 0): with ``offset_max_windows`` 5 the applied
     offset returns to the configured 0 once the old windows have left, and no more than 5 are kept; with 0
