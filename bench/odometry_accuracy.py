@@ -390,13 +390,19 @@ def run_online(
     """The labeler node's odometry (:class:`OnlineOdometry`: one pass, step lengths smoothed with
     ``smoothing_lag_frames`` frames after each, ``isolated`` decided online) over one sequence.
 
-    Bad reliable frames as in :func:`run_sequence`; the first frame is not counted as reliable.
+    Bad reliable frames as in :func:`run_sequence`; the first frame is not counted as reliable. Also the
+    time of each frame's :meth:`OnlineOdometry.add` (95th percentile and worst): the stalls the node sees.
     """
     online = OnlineOdometry(camera, params)
+    decisions = []
+    latency = []  # per frame, seconds: what the node's odometry thread spends on it (its stalls)
+    for k, (left, right, _) in enumerate(frames):
+        started = time.perf_counter()
+        decisions += online.add(k, left, right)
+        latency.append(time.perf_counter() - started)
     started = time.perf_counter()
-    decisions = [d for k, (left, right, _) in enumerate(frames) for d in online.add(k, left, right)]
     decisions += online.finish()
-    elapsed = time.perf_counter() - started
+    elapsed = sum(latency) + time.perf_counter() - started
     poses = np.stack([d.chained for d in decisions])
     reliable = np.array([d.pose is not None for d in decisions])
     reliable[0] = False
@@ -408,6 +414,8 @@ def run_online(
         "reliable": int(reliable.sum()),
         "bad_reliable": int((reliable & (steps > BAD_STEP)).sum()),
         "ms_per_frame": 1000.0 * elapsed / len(frames),
+        "p95_frame_ms": 1000.0 * float(np.percentile(latency, 95)),
+        "worst_frame_ms": 1000.0 * max(latency),
     }
 
 
@@ -593,7 +601,8 @@ def _main_online(args: argparse.Namespace, params: VOParams) -> int:
         row = run_online(name, camera, frames, truth, params)
         rows.append(row)
         print(f"{name}: {row['translation_pct']:.2f} %, {row['reliable']} reliable, {row['bad_reliable']} bad, "
-              f"{row['ms_per_frame']:.0f} ms/frame", file=sys.stderr, flush=True)  # fmt: skip
+              f"{row['ms_per_frame']:.0f} ms/frame (95th percentile {row['p95_frame_ms']:.0f}, worst "
+              f"{row['worst_frame_ms']:.0f})", file=sys.stderr, flush=True)  # fmt: skip
     summary: dict[str, Any] = {}
     for scene in sorted({r["sequence"].split("/")[0] for r in rows}):
         group = [r for r in rows if r["sequence"].split("/")[0] == scene]
