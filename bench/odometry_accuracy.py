@@ -24,11 +24,13 @@ and prints one row per sequence:
   a sequence whose estimate ends significantly away from 0 is run a second
   time with it, as ``selfcontra odometry`` does);
 * the odometry's time per frame (images in memory, rendering excluded;
-  both passes).
+  every pass).
 
 ``--right-shift PX`` moves every right image's content PX to the right, so
 every disparity is PX smaller: a rectification offset, to measure what one
-costs and how much of it the estimate takes back.
+costs and how much of it the estimate takes back (``--right-shift-method``:
+bilinear, as the earlier rounds, or fourier, the same shift at every
+frequency).
 
 Then per scene the mean, standard deviation and worst of each figure, and
 last one JSON line with all of it. Rendered frames are kept in ``--cache``
@@ -68,7 +70,7 @@ from selfcontra_ros.datasets.kitti import open_sequence
 from selfcontra_ros.datasets.synthetic import make_scene
 from selfcontra_ros.geometry import StereoCamera
 from selfcontra_ros.odometry.metrics import evaluate_odometry, path_lengths
-from selfcontra_ros.odometry.run import OnlineOdometry, second_pass_params
+from selfcontra_ros.odometry.run import OnlineOdometry, next_pass_params
 from selfcontra_ros.odometry.stereo_vo import StereoCache, StereoOdometry, VOParams, _Features, mark_isolated
 
 DEFAULT_KITTI = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "kitti_odometry"
@@ -216,8 +218,9 @@ def run_sequence(
     """Run the odometry over one sequence and measure it against the true poses (``oracle``: see OracleOdometry).
 
     As :func:`~selfcontra_ros.odometry.run.estimate_poses` does, a sequence whose disparity offset estimate
-    ended away from ``params.disparity_offset_px`` is run a second time with it applied, reusing the first
-    pass's stereo matching; the time per frame counts both passes.
+    ended away from ``params.disparity_offset_px`` is run again (:func:`~selfcontra_ros.odometry.run.next_pass_params`:
+    estimating around it, then with the second estimate applied), reusing the first pass's stereo
+    matching; the time per frame counts every pass.
     """
     counts: dict[str, int] = {}
     median_disparity: list[float] = []
@@ -252,11 +255,15 @@ def run_sequence(
     vo, elapsed = run_pass(params)
     estimate, error, windows = vo.offset_estimate()
     passes = 1
-    fixed = second_pass_params(vo, params)
-    if fixed is not None:
-        vo, second = run_pass(fixed)
-        elapsed += second
-        passes = 2
+    first_offset = vo.disparity_offset  # the first pass's; the later ones estimate again around it (README)
+    following = next_pass_params(vo, params, params)
+    while following is not None:
+        vo, seconds = run_pass(following)
+        elapsed += seconds
+        passes += 1
+        if following.estimate_disparity_offset:
+            estimate, error, windows = vo.offset_estimate()
+        following = next_pass_params(vo, following, params)
     moving_features, moving_inliers = counts["moving_features"], counts["moving_inliers"]
     features, inliers = counts["features"], counts["inliers"]
     poses = vo.smoothed_poses()  # what estimate_poses returns: step lengths smoothed over the sequence
@@ -289,6 +296,7 @@ def run_sequence(
         "oracle": oracle,
         "disparity_offset_px": vo.disparity_offset,
         "offset_estimate_px": estimate,
+        "first_pass_offset_px": first_offset,
         "offset_error_px": error,
         "offset_windows": windows,
         "passes": passes,
@@ -482,11 +490,26 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
 Sequence = tuple[str, StereoCamera, Frames, NDArray[np.float64], NDArray[np.float32] | None]
 
 
-def shift_right_images(frames: Frames, shift_px: float) -> Frames:
-    """The frames with every right image's content moved ``shift_px`` to the right (bilinear, edges
-    repeated): every disparity ``shift_px`` smaller, as a rectification off by that much (``--right-shift``)."""
+def shift_right_images(frames: Frames, shift_px: float, method: str = "bilinear") -> Frames:
+    """The frames with every right image's content moved ``shift_px`` to the right: every disparity
+    ``shift_px`` smaller, as a rectification off by that much (``--right-shift``).
+
+    ``bilinear`` (edges repeated) is the earlier rounds' shift; bilinear interpolation moves fine texture by
+    less than the shift (its phase lags at high frequencies) and blurs it. ``fourier`` moves each row by a
+    phase ramp of its spectrum (edges reflected over 64 px, rounded back to uint8): the same shift at every
+    frequency.
+    """
     if shift_px == 0.0:
         return frames
+    if method == "fourier":
+        pad = 64
+        out: Frames = []
+        for left, right, moving in frames:
+            rows = np.pad(right.astype(np.float64), ((0, 0), (pad, pad)), mode="reflect")
+            spectrum = np.fft.rfft(rows, axis=1) * np.exp(-2j * np.pi * np.fft.rfftfreq(rows.shape[1]) * shift_px)
+            moved = np.fft.irfft(spectrum, n=rows.shape[1], axis=1)[:, pad:-pad]
+            out.append((left, np.clip(np.rint(moved), 0, 255).astype(np.uint8), moving))
+        return out
     import cv2
 
     matrix = np.array([[1.0, 0.0, shift_px], [0.0, 1.0, 0.0]])
@@ -501,7 +524,7 @@ def _sequences(args: argparse.Namespace) -> Iterator[Sequence]:
     """Name, camera, frames, true poses and (stereo oracle only) true disparities of each sequence."""
     if args.kitti is not None and Path(args.kitti).exists():
         camera, frames, truth = kitti_frames(Path(args.kitti))
-        yield "kitti06", camera, shift_right_images(frames, args.right_shift), truth, None
+        yield "kitti06", camera, shift_right_images(frames, args.right_shift, args.right_shift_method), truth, None
     elif args.kitti is not None:
         print(f"(no KITTI sample at {args.kitti}: skipped)", file=sys.stderr)
     for scene in args.scenes:
@@ -510,7 +533,13 @@ def _sequences(args: argparse.Namespace) -> Iterator[Sequence]:
             disparities = None
             if args.oracle in ("stereo", "both"):
                 disparities = true_disparities(scene, seed, args.frames, args.size, args.cache)
-            yield f"{scene}/{seed}", camera, shift_right_images(frames, args.right_shift), truth, disparities
+            yield (
+                f"{scene}/{seed}",
+                camera,
+                shift_right_images(frames, args.right_shift, args.right_shift_method),
+                truth,
+                disparities,
+            )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -524,6 +553,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--size", type=parse_size, default=(1226, 370), help="synthetic image size WxH")
     parser.add_argument("--cache", type=Path, default=None, help="folder for rendered frames (.npz)")
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="a VOParams override")
+    parser.add_argument(
+        "--right-shift-method", choices=("bilinear", "fourier"), default="bilinear",
+        help="how --right-shift moves the right images (see shift_right_images)",
+    )  # fmt: skip
     parser.add_argument(
         "--right-shift", type=float, default=0.0, metavar="PX",
         help="move every right image's content PX to the right (disparities PX smaller: a rectification offset)",

@@ -173,7 +173,8 @@ class VOParams:
             adjustment (:meth:`StereoOdometry._estimate_offset`) and apply it
             once it differs significantly from ``disparity_offset_px``
             (offline, :func:`~selfcontra_ros.odometry.run.estimate_poses`
-            then runs the sequence again with it). On the KITTI 06 sample it
+            then runs the sequence again, estimating around it, and a third
+            time with that estimate fixed). On the KITTI 06 sample it
             finds about +0.2 px (disparities too small), which took the
             translation error from 1.37 to 0.83 % and the scale error from
             +1.05 to +0.30 %; on the synthetic scenes, whose disparities have
@@ -589,7 +590,7 @@ class _Features:
 
 @dataclass(frozen=True)
 class StereoMatches:
-    """One pair's stereo matches before the disparity offset: what a second pass over the same images reuses.
+    """One pair's stereo matches before the disparity offset: what a later pass over the same images reuses.
 
     Row ``i`` of each array is candidate ``i``: a left ORB feature matched to
     a right corner on its row whose sub-pixel right position stayed on the
@@ -602,6 +603,9 @@ class StereoMatches:
     guess_u: F64  # (M,) the matched right corner's column
     found_u: F64  # (M,) the refined right column, as the images show it (no offset)
     detected: int  # left features detected (bucketed), matched or not
+    # (M,) the straddle test (StereoOdometry._straddles) on the raw disparities, measured when the offset is
+    # estimated; None otherwise.
+    straddle: NDArray[np.bool_] | None = None
 
     @classmethod
     def empty(cls, detected: int) -> StereoMatches:
@@ -611,15 +615,16 @@ class StereoMatches:
     @property
     def nbytes(self) -> int:
         """Memory held by the arrays, bytes."""
-        return sum(a.nbytes for a in (self.uv, self.descriptors, self.guess_u, self.found_u))
+        arrays = (self.uv, self.descriptors, self.guess_u, self.found_u)
+        return sum(a.nbytes for a in arrays) + (0 if self.straddle is None else self.straddle.nbytes)
 
 
 class StereoCache:
-    """Stereo matches of one sequence's frames by frame index, for a second pass over the same images.
+    """Stereo matches of one sequence's frames by frame index, for later passes over the same images.
 
-    The offline odometry runs a sequence twice when its disparity offset
+    The offline odometry runs a sequence again when its disparity offset
     estimate becomes significant (:func:`~selfcontra_ros.odometry.run.estimate_poses`);
-    the second pass differs only in the offset, which moves every right
+    a later pass differs only in the offset, which moves every right
     position by the same amount after the matching. Its stereo matching
     (ORB on both images, row matching, the sub-pixel step: half of a pass's
     time) is therefore the first pass's, taken from here, and the poses are
@@ -939,7 +944,7 @@ class StereoOdometry:
         """Stereo features of a pair and the number of left features detected.
 
         The matches before the disparity offset (:class:`StereoMatches`) come
-        from :attr:`stereo_cache` when it holds this frame (a second pass over
+        from :attr:`stereo_cache` when it holds this frame (a later pass over
         the same images), else they are measured (and stored there when a
         cache is set); the offset and the gates it moves are applied here.
         """
@@ -955,7 +960,10 @@ class StereoOdometry:
         d = matches.uv[:, 0] - right_u
         ok = (np.abs(right_u - matches.guess_u) <= 3.0) & (d >= p.min_disparity) & (d <= p.max_disparity)
         uv, d = matches.uv[ok], d[ok]
-        straddle = self._straddles(left, right, uv, d)
+        if matches.straddle is not None and p.estimate_disparity_offset and p.offset_straddle_px > 0:
+            straddle = matches.straddle[ok]  # measured on the raw disparities: the same in every pass
+        else:
+            straddle = self._straddles(left, right, uv, d)
         return _Features(uv, d, matches.descriptors[ok], self._triangulate(uv, d), straddle=straddle), matches.detected
 
     def _stereo_matches(self, left: NDArray[np.uint8], right: NDArray[np.uint8]) -> StereoMatches:
@@ -977,7 +985,10 @@ class StereoOdometry:
         found, ok = self._refine_right_raw(left, right, uv[qi], guess)
         ok &= np.abs(found[:, 1] - uv[qi, 1]) <= p.epipolar_tolerance_px
         qi = qi[ok]
-        return StereoMatches(uv[qi], descriptors[qi], guess[ok, 0], found[ok, 0], len(uv))
+        straddle = None
+        if p.estimate_disparity_offset and p.offset_straddle_px > 0:
+            straddle = self._straddles_raw(left, right, uv[qi], uv[qi, 0] - found[ok, 0])
+        return StereoMatches(uv[qi], descriptors[qi], guess[ok, 0], found[ok, 0], len(uv), straddle)
 
     def _straddles(
         self, left: NDArray[np.uint8], right: NDArray[np.uint8], uv: F64, disparity: F64
@@ -993,7 +1004,13 @@ class StereoOdometry:
         p = self.params
         if not (p.estimate_disparity_offset and p.offset_straddle_px > 0 and len(uv)):
             return np.zeros(0, bool)
-        raw = disparity - self._offset  # the offset moved the right positions; the halves are measured raw
+        # The offset moved the right positions; the halves are measured raw.
+        return self._straddles_raw(left, right, uv, disparity - self._offset)
+
+    def _straddles_raw(self, left: NDArray[np.uint8], right: NDArray[np.uint8], uv: F64, raw: F64) -> NDArray[np.bool_]:
+        """:meth:`_straddles` of features whose disparities ``raw`` are as the images show them (no offset)."""
+        if not len(uv):
+            return np.zeros(0, bool)
         found_both = np.ones(len(uv), dtype=bool)
         halves = []
         for side in (-_HALF_SHIFT_PX, _HALF_SHIFT_PX):
@@ -1002,7 +1019,7 @@ class StereoOdometry:
             found, ok = self._lk(left, right, points, guess, _HALF_WINDOW)
             halves.append(points[:, 0] - found[:, 0])
             found_both &= ok
-        return ~found_both | (np.abs(halves[0] - halves[1]) > p.offset_straddle_px)
+        return ~found_both | (np.abs(halves[0] - halves[1]) > self.params.offset_straddle_px)
 
     def _refine_right(
         self, left: NDArray[np.uint8], right: NDArray[np.uint8], uv: F64, guess: F64

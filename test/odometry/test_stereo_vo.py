@@ -21,6 +21,7 @@ from selfcontra_ros.odometry.run import (
     check_usable,
     estimate_poses,
     estimate_sequence_poses,
+    next_pass_params,
     odometry_command,
     poses_for_sequence,
     quality_paths,
@@ -415,12 +416,24 @@ def _path_scale_error(poses: np.ndarray, truth: np.ndarray) -> float:
 
 
 @pytest.mark.parametrize("shift_px", [0.0, 0.5])
-def test_a_disparity_offset_is_estimated_and_undone(street_long: tuple, shift_px: float) -> None:
+def test_a_disparity_offset_is_estimated_and_undone(
+    street_long: tuple, shift_px: float, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """Right images shifted by half a pixel (every disparity 0.5 px too small, as a rectification off by
-    that much) make the street's path several percent too long; the windows' estimate finds the shift
-    and the second pass removes most of the error. Without a shift the offset stays at 0."""
+    that much) make the street's path several percent too long; the windows' estimate finds the shift, a
+    second pass estimates it again around the first estimate, and the third applies that from the first
+    frame on and removes most of the error. Without a shift the offset stays at 0, in one pass."""
     camera, frames, truth = street_long
     shifted = [(float(k), left, _shift_right(right, shift_px)) for k, (left, right) in enumerate(frames)]
+    passes: list[tuple[float, bool, float]] = []
+    run_once = run_module._run_odometry
+
+    def recorded(*args: object, **kwargs: object) -> StereoOdometry:
+        vo = run_once(*args, **kwargs)  # type: ignore[arg-type]
+        passes.append((vo.params.disparity_offset_px, vo.params.estimate_disparity_offset, vo.disparity_offset))
+        return vo
+
+    monkeypatch.setattr(run_module, "_run_odometry", recorded)
     estimated, quality = estimate_poses(camera, lambda: iter(shifted))
     off = replace(VOParams(), estimate_disparity_offset=False)
     plain, _ = estimate_poses(camera, lambda: iter(shifted), params=off)
@@ -428,16 +441,46 @@ def test_a_disparity_offset_is_estimated_and_undone(street_long: tuple, shift_px
     if shift_px == 0.0:
         # Street's stereo has no offset: the windows' estimates do not differ from 0 significantly.
         assert applied == 0.0
+        assert passes[0] == (0.0, True, 0.0) and len(passes) == 2  # one pass each
         np.testing.assert_allclose(estimated, plain)
         return
-    # Measured: +0.454 px (+0.435 without the straddle test; the bilinear shift also blurs the right image a
-    # little); path 4.2 % -> 0.14 % long.
-    assert 0.3 <= applied <= 0.65, applied
-    # The second pass applies it from the first frame on.
-    assert all(q.disparity_offset_px == applied for q in quality)
+    # The passes: estimating from 0; estimating again from the first estimate; the second applied, fixed.
+    # Measured: +0.454 px, then +0.506 px (the bilinear shift also blurs the right image a little); path
+    # 4.2 % long with the offset unestimated, 0.23 % short after.
+    (start, estimating, first), (again, estimating_again, _), (last, fixed_estimating, _) = passes[:3]
+    assert (start, estimating, again, estimating_again, fixed_estimating) == (0.0, True, first, True, False)
+    assert last == applied and 0.3 <= first <= 0.65 and 0.3 <= applied <= 0.65, (first, applied)
+    assert all(q.disparity_offset_px == applied for q in quality)  # from the first frame on
     before, after = abs(_path_scale_error(plain, truth)), abs(_path_scale_error(estimated, truth))
     assert before > 0.01, before  # the shift matters: over 1 % on a street whose points are 5-40 m away
     assert after < 0.5 * before, (before, after)
+
+
+class _FakeRun:
+    """What :func:`next_pass_params` reads of a finished run: its offset and its windows' estimate."""
+
+    def __init__(self, offset: float, mean: float, windows: int) -> None:
+        self.disparity_offset = offset
+        self._estimate = (mean, 0.02, windows)
+
+    def offset_estimate(self) -> tuple[float, float, int]:
+        return self._estimate
+
+
+def test_the_passes_over_a_sequence_follow_its_offset_estimate() -> None:
+    """First pass: final when its offset never moved, else estimate again from it. Second: its windows' mean
+    (its own starting offset with too few windows) applied and fixed. A fixed pass is always final."""
+    params = replace(VOParams(), disparity_offset_px=0.1)
+    assert next_pass_params(_FakeRun(0.1, 0.12, 5), params, params) is None  # not significant: one pass
+    second = next_pass_params(_FakeRun(0.25, 0.25, 5), params, params)
+    assert second == replace(params, disparity_offset_px=0.25)
+    third = next_pass_params(_FakeRun(0.25, 0.31, 5), second, params)
+    assert third == replace(params, disparity_offset_px=0.31, estimate_disparity_offset=False)
+    assert next_pass_params(_FakeRun(0.31, 0.5, 9), third, params) is None
+    few = next_pass_params(_FakeRun(0.25, 0.4, params.offset_min_windows - 1), second, params)
+    assert few == replace(params, disparity_offset_px=0.25, estimate_disparity_offset=False)
+    fixed = replace(params, estimate_disparity_offset=False)
+    assert next_pass_params(_FakeRun(0.1, 0.3, 5), fixed, fixed) is None
 
 
 def test_the_second_pass_reuses_the_first_passs_stereo_matching(street_long: tuple) -> None:
