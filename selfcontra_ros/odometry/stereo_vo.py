@@ -2062,9 +2062,9 @@ class _WindowProblem:
             np.add.at(u, cam_index[free], jc_t @ jc)
             gc = np.zeros((self.n_free, 6))
             np.add.at(gc, cam_index[free], (jc_t @ r[free])[:, :, 0])
-            w = np.zeros((npts, self.n_free, 6, 3))  # per point, its cross terms with each free frame
-            w[self.pi[free], cam_index[free]] = jc_t @ jp[free]
-            w = w.reshape(npts, nc, 3)
+            cross = np.zeros((npts, self.n_free, 6, 3))  # per point, its cross terms with each free frame
+            cross[self.pi[free], cam_index[free]] = jc_t @ jp[free]
+            w = cross.reshape(npts, nc, 3)
             while True:
                 vd = v + damping * (np.einsum("pii->pi", v)[:, :, None] * np.eye(3))
                 ud = u + damping * (np.einsum("fii->fi", u)[:, :, None] * np.eye(6))
