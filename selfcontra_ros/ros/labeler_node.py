@@ -230,6 +230,7 @@ from selfcontra_ros.labeler import LabelerParams, LabelResult
 from selfcontra_ros.labels import colorize_labels
 from selfcontra_ros.matching.base import MatcherParams
 from selfcontra_ros.odometry.run import OnlineDecision, OnlineOdometry
+from selfcontra_ros.odometry.stereo_vo import OdometryError, VOParams
 from selfcontra_ros.rectification import calibration_key
 from selfcontra_ros.ros.conversions import (
     disparity_from_message,
@@ -561,6 +562,23 @@ class LabelerNode(Node):
             ),
         )
         self.declare_parameter(
+            "odometry_disparity_offset_px",
+            0.0,
+            _descriptor(
+                "pose_source odometry: the rig's disparity offset, added to every disparity the odometry measures "
+                "(pixels, within +-5; e.g. what `selfcontra odometry` prints for a recording of the rig)",
+                dynamic_typing=True,
+            ),
+        )
+        self.declare_parameter(
+            "odometry_estimate_offset",
+            True,
+            _descriptor(
+                "pose_source odometry: estimate the disparity offset while running and apply it once it differs "
+                "significantly from odometry_disparity_offset_px (false: keep that value)"
+            ),
+        )
+        self.declare_parameter(
             "world_frame",
             "",
             _descriptor("pose_source tf: the fixed frame of the poses, e.g. odom or map (required there)"),
@@ -686,6 +704,13 @@ class LabelerNode(Node):
             raise LabelerConfigError(str(exc)) from exc
         p = self.get_parameter
         self._pose_source = str(p("pose_source").value)
+        try:
+            self._odometry_params = VOParams(
+                disparity_offset_px=float(p("odometry_disparity_offset_px").value),
+                estimate_disparity_offset=bool(p("odometry_estimate_offset").value),
+            )
+        except (OdometryError, TypeError, ValueError) as exc:
+            raise LabelerConfigError(f"parameter 'odometry_disparity_offset_px': {exc}") from exc
         self._world_frame = normalize_frame(str(p("world_frame").value))
         self._camera_frame = normalize_frame(str(p("camera_frame").value))
         self._image_transport = str(p("image_transport").value)
@@ -1216,7 +1241,7 @@ class LabelerNode(Node):
             self._camera = camera
             self._session = session
         if self._pose_source == "odometry" and not self._external:
-            self._odometry = OnlineOdometry(camera)
+            self._odometry = OnlineOdometry(camera, self._odometry_params)
         return session
 
     def _on_pose(self, msg: Any) -> None:

@@ -532,6 +532,32 @@ def test_odometry_pose_source_labels_the_frames_the_odometry_poses(
     assert node.stats()["drops"].get("shutdown_discarded", 0) == 0
 
 
+def test_the_odometry_takes_the_rigs_disparity_offset(
+    params_file: Path, ros_node: Any, labeler_node: Callable[..., Any]
+) -> None:
+    """pose_source odometry with a known disparity offset: the node's odometry adds it to every disparity
+    from its first frame on and, with estimation off, keeps it; an offset beyond +-5 px is refused."""
+    from selfcontra_ros.ros.labeler_node import LabelerConfigError
+
+    scene = make_scene("street", 2, 320, 96, frames=3)
+    node = labeler_node(pose_source="odometry", odometry_disparity_offset_px=0.3, odometry_estimate_offset=False)
+    feeder = Feeder(ros_node)
+    recorder = Recorder(ros_node)
+    subscribed = lambda: feeder.left.get_subscription_count() >= 1 and recorder.matched()  # noqa: E731
+    assert spin_nodes([node, ros_node], subscribed, WAIT_S)
+    for k in range(3):
+        frame = scene.render(k)
+        feeder.infos(scene.camera, STAMP0_NS + k * PERIOD_NS)
+        feeder.images(frame.left, frame.right, STAMP0_NS + k * PERIOD_NS)
+        assert spin_nodes([node, ros_node], lambda k=k: recorder.count(topics.DEPTH) > k, WAIT_S), k
+    odometry = node._odometry
+    assert odometry is not None and odometry.last_quality is not None
+    assert odometry.last_quality.disparity_offset_px == 0.3
+    assert odometry.last_quality.status != "first"  # a measured frame, not only the first one
+    with pytest.raises(LabelerConfigError, match="disparity_offset_px"):
+        labeler_node(pose_source="odometry", odometry_disparity_offset_px=7.0)
+
+
 def test_an_odometry_error_publishes_the_frame_and_starts_over(
     params_file: Path, ros_node: Any, labeler_node: Callable[..., Any], monkeypatch: pytest.MonkeyPatch
 ) -> None:
