@@ -111,10 +111,11 @@ def synthetic_frames(
     path = None if cache is None else cache / f"{scene}_{seed}_{frames}_{size[0]}x{size[1]}.npz"
     if path is not None and path.exists():
         with np.load(path, allow_pickle=False) as data:
-            moving = data["moving"] if data["moving"].size else None
-            out: Frames = [
-                (data["left"][k], data["right"][k], None if moving is None else moving[k]) for k in range(frames)
-            ]
+            # Each key once: an NpzFile reads (and decompresses) the whole array at every access, and a frame
+            # sliced from it keeps that copy alive (300 frames took 24 GiB).
+            left, right, moving_all = data["left"], data["right"], data["moving"]
+        moving = moving_all if moving_all.size else None
+        out: Frames = [(left[k], right[k], None if moving is None else moving[k]) for k in range(frames)]
         return built.camera, out, built.poses(frames)
     out = []
     for k in range(frames):
