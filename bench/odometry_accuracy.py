@@ -70,7 +70,7 @@ from selfcontra_ros.datasets.kitti import open_sequence
 from selfcontra_ros.datasets.synthetic import make_scene
 from selfcontra_ros.geometry import StereoCamera
 from selfcontra_ros.odometry.metrics import evaluate_odometry, path_lengths
-from selfcontra_ros.odometry.run import OnlineOdometry, next_pass_params
+from selfcontra_ros.odometry.run import OnlineOdometry, run_passes
 from selfcontra_ros.odometry.stereo_vo import StereoCache, StereoOdometry, VOParams, _Features, mark_isolated
 
 DEFAULT_KITTI = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "kitti_odometry"
@@ -226,13 +226,13 @@ def run_sequence(
     counts: dict[str, int] = {}
     median_disparity: list[float] = []
 
-    cache = StereoCache() if params.estimate_disparity_offset else None  # as estimate_poses: the second pass reuses
+    elapsed = 0.0  # every pass's odometry time, seconds
 
-    def run_pass(run_params: VOParams) -> tuple[OracleOdometry, float]:
+    def run_pass(run_params: VOParams, cache: StereoCache | None) -> OracleOdometry:
+        nonlocal elapsed
         vo = OracleOdometry(camera, run_params, oracle, cache)
         counts.update(moving_features=0, moving_inliers=0, features=0, inliers=0)
         median_disparity.clear()
-        elapsed = 0.0
         for k, (left, right, moving) in enumerate(frames):
             vo.moving = moving
             vo.disparity = None if disparities is None else disparities[k]
@@ -251,20 +251,14 @@ def run_sequence(
                 fuv = np.rint(vo.last_features).astype(np.int64)
                 counts["moving_features"] += int(moving[fuv[:, 1], fuv[:, 0]].sum())
                 counts["features"] += len(fuv)
-        return vo, elapsed
+        return vo
 
-    vo, elapsed = run_pass(params)
-    estimate, error, windows = vo.offset_estimate()
-    passes = 1
-    first_offset = vo.disparity_offset  # the first pass's; the later ones estimate again around it (README)
-    following = next_pass_params(vo, params, params)
-    while following is not None:
-        vo, seconds = run_pass(following)
-        elapsed += seconds
-        passes += 1
-        if following.estimate_disparity_offset:
-            estimate, error, windows = vo.offset_estimate()
-        following = next_pass_params(vo, following, params)
+    runs = run_passes(run_pass, params)  # as estimate_poses runs them
+    vo, passes = runs[-1], len(runs)
+    first_offset = runs[0].disparity_offset  # the first pass's; the later ones estimate again around it (README)
+    # The last pass that estimated the offset (the first when none did: no windows, NaN).
+    estimating = next((r for r in reversed(runs) if r.params.estimate_disparity_offset), runs[0])
+    estimate, error, windows = estimating.offset_estimate()
     moving_features, moving_inliers = counts["moving_features"], counts["moving_inliers"]
     features, inliers = counts["features"], counts["inliers"]
     poses = vo.smoothed_poses()  # what estimate_poses returns: step lengths smoothed over the sequence

@@ -32,7 +32,7 @@ from collections import Counter, deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -73,10 +73,12 @@ __all__ = [
     "odometry_command",
     "poses_for_sequence",
     "quality_paths",
+    "run_passes",
     "write_quality",
 ]
 
 _LOG = logging.getLogger(__name__)
+_Odometry = TypeVar("_Odometry", bound=StereoOdometry)
 _Triple = tuple[float, NDArray[np.uint8], NDArray[np.uint8]]
 _NS_PER_S = 1_000_000_000
 #: Frames (before the newest) over which :class:`OnlineOdometry` smooths the step lengths.
@@ -117,22 +119,34 @@ def estimate_poses(
     if not callable(frames):
         vo = _run_odometry(camera, frames, params)
     else:
-        cache = StereoCache() if params.estimate_disparity_offset else None
-        run_params: VOParams | None = params
-        while run_params is not None:
-            vo = _run_odometry(camera, frames(), run_params, cache)
-            run_params = next_pass_params(vo, run_params, params)
-            if run_params is not None:
-                _, error, windows = vo.offset_estimate()
-                _LOG.info(
-                    "disparity offset %+.3f px (standard error %.3f px over %d windows): %s",
-                    run_params.disparity_offset_px, error, windows,
-                    "estimated again around it" if run_params.estimate_disparity_offset else "final pass with it",
-                )  # fmt: skip
+        vo = run_passes(lambda run_params, cache: _run_odometry(camera, frames(), run_params, cache), params)[-1]
     poses = vo.smoothed_poses()
     qualities = mark_isolated(vo.qualities, vo.params)
     check_usable(qualities)
     return poses, qualities
+
+
+def run_passes(run_pass: Callable[[VOParams, StereoCache | None], _Odometry], params: VOParams) -> list[_Odometry]:
+    """Every pass over one sequence, first to final (:func:`next_pass_params` chooses them).
+
+    ``run_pass(run_params, cache)`` runs the odometry over the whole
+    sequence once; ``cache`` (None when ``params`` does not estimate the
+    offset, so that no later pass can come) carries the first pass's stereo
+    matching to the later ones.
+    """
+    cache = StereoCache() if params.estimate_disparity_offset else None
+    runs = [run_pass(params, cache)]
+    following = next_pass_params(runs[-1], params, params)
+    while following is not None:
+        _, error, windows = runs[-1].offset_estimate()
+        _LOG.info(
+            "disparity offset %+.3f px (standard error %.3f px over %d windows): %s",
+            following.disparity_offset_px, error, windows,
+            "estimated again around it" if following.estimate_disparity_offset else "final pass with it",
+        )  # fmt: skip
+        runs.append(run_pass(following, cache))
+        following = next_pass_params(runs[-1], following, params)
+    return runs
 
 
 def next_pass_params(vo: StereoOdometry, run_params: VOParams, params: VOParams) -> VOParams | None:

@@ -960,7 +960,7 @@ class StereoOdometry:
         d = matches.uv[:, 0] - right_u
         ok = (np.abs(right_u - matches.guess_u) <= 3.0) & (d >= p.min_disparity) & (d <= p.max_disparity)
         uv, d = matches.uv[ok], d[ok]
-        if matches.straddle is not None and p.estimate_disparity_offset and p.offset_straddle_px > 0:
+        if matches.straddle is not None and self._measures_straddle:
             straddle = matches.straddle[ok]  # measured on the raw disparities: the same in every pass
         else:
             straddle = self._straddles(left, right, uv, d)
@@ -986,7 +986,7 @@ class StereoOdometry:
         ok &= np.abs(found[:, 1] - uv[qi, 1]) <= p.epipolar_tolerance_px
         qi = qi[ok]
         straddle = None
-        if p.estimate_disparity_offset and p.offset_straddle_px > 0:
+        if self._measures_straddle:
             straddle = self._straddles_raw(left, right, uv[qi], uv[qi, 0] - found[ok, 0])
         return StereoMatches(uv[qi], descriptors[qi], guess[ok, 0], found[ok, 0], len(uv), straddle)
 
@@ -1001,11 +1001,15 @@ class StereoOdometry:
         than ``offset_straddle_px``, or either fails, the window saw two
         depths. Only measured while the offset is estimated (empty otherwise).
         """
-        p = self.params
-        if not (p.estimate_disparity_offset and p.offset_straddle_px > 0 and len(uv)):
+        if not (self._measures_straddle and len(uv)):
             return np.zeros(0, bool)
         # The offset moved the right positions; the halves are measured raw.
         return self._straddles_raw(left, right, uv, disparity - self._offset)
+
+    @property
+    def _measures_straddle(self) -> bool:
+        """Whether the straddle test runs: only while the offset is estimated, and when it is on."""
+        return self.params.estimate_disparity_offset and self.params.offset_straddle_px > 0
 
     def _straddles_raw(self, left: NDArray[np.uint8], right: NDArray[np.uint8], uv: F64, raw: F64) -> NDArray[np.bool_]:
         """:meth:`_straddles` of features whose disparities ``raw`` are as the images show them (no offset)."""
@@ -2048,7 +2052,8 @@ class _WindowProblem:
         nc, npts = 6 * self.n_free, self.n_points
         free = self.fi > 0
         cam_index = np.where(free, self.fi - 1, 0)
-        for _ in range(max_iterations):
+        steps_left = max_iterations  # accepted and refused steps alike
+        while steps_left > 0:
             b = self.blocks(x)
             r = res.reshape(-1, 3, 1)
             jc, jp = b[free, :, :6], b[:, :, 6:]
@@ -2083,8 +2088,8 @@ class _WindowProblem:
                 candidate = x + np.concatenate([dc, dp.ravel()])
                 new_res = self.residuals(candidate)
                 new_cost = float(new_res @ new_res)
-                max_iterations -= 1
-                if new_cost < cost or max_iterations <= 0:
+                steps_left -= 1
+                if new_cost < cost or steps_left <= 0:
                     break
                 damping *= 10.0
             if not new_cost < cost:
@@ -2092,7 +2097,7 @@ class _WindowProblem:
             converged = cost - new_cost <= tolerance * cost
             x, res, cost = candidate, new_res, new_cost
             damping = max(damping / 10.0, 1e-9)
-            if converged or max_iterations <= 0:
+            if converged:
                 break
         return x, res
 
