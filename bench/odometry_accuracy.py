@@ -70,8 +70,8 @@ from selfcontra_ros.datasets.kitti import open_sequence
 from selfcontra_ros.datasets.synthetic import make_scene
 from selfcontra_ros.geometry import StereoCamera
 from selfcontra_ros.odometry.metrics import evaluate_odometry, path_lengths
-from selfcontra_ros.odometry.run import OnlineOdometry, run_passes
-from selfcontra_ros.odometry.stereo_vo import StereoCache, StereoOdometry, VOParams, _Features, mark_isolated
+from selfcontra_ros.odometry.run import OnlineOdometry, final_poses, run_passes
+from selfcontra_ros.odometry.stereo_vo import StereoCache, StereoOdometry, VOParams, _Features
 
 DEFAULT_KITTI = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "kitti_odometry"
 #: A reliable frame whose motion from the previous frame is off by more than this share of its length is bad.
@@ -261,8 +261,7 @@ def run_sequence(
     estimate, error, windows = estimating.offset_estimate()
     moving_features, moving_inliers = counts["moving_features"], counts["moving_inliers"]
     features, inliers = counts["features"], counts["inliers"]
-    poses = vo.smoothed_poses()  # what estimate_poses returns: step lengths smoothed over the sequence
-    qualities = mark_isolated(vo.qualities, vo.params)  # and reliable frames among unreliable ones marked
+    poses, qualities = final_poses(vo)  # as estimate_poses returns them
     reliable = np.array([q.reliable for q in qualities])
     metrics = evaluate_odometry(poses, truth)
     steps = step_errors(poses, truth)

@@ -55,7 +55,9 @@ from selfcontra_ros.odometry.stereo_vo import (
     StereoOdometry,
     VOParams,
     mark_isolated,
+    mark_uncertain,
     smooth_step_lengths,
+    step_length_spread,
 )
 from selfcontra_ros.reports import write_json
 from selfcontra_ros.ros.conversions import stamp_to_nanoseconds
@@ -69,6 +71,7 @@ __all__ = [
     "estimate_bag_poses",
     "estimate_poses",
     "estimate_sequence_poses",
+    "final_poses",
     "next_pass_params",
     "odometry_command",
     "poses_for_sequence",
@@ -109,8 +112,9 @@ def estimate_poses(
         (N, 4, 4) poses ``T_world_left`` (metres, after the windowed
         refinement, step lengths smoothed over the sequence:
         :func:`~selfcontra_ros.odometry.stereo_vo.smooth_step_lengths`) and
-        the per-frame quality (reliable frames among unreliable ones
-        reported ``isolated``: :func:`~selfcontra_ros.odometry.stereo_vo.mark_isolated`).
+        the per-frame quality (:func:`final_poses`: reliable frames among
+        unreliable ones reported ``isolated``, frames whose smoothed step
+        length the sequence pins down too loosely ``uncertain``).
 
     Raises:
         OdometryError: no frame at all, or no usable frame (see :func:`check_usable`).
@@ -120,10 +124,29 @@ def estimate_poses(
         vo = _run_odometry(camera, frames, params)
     else:
         vo = run_passes(lambda run_params, cache: _run_odometry(camera, frames(), run_params, cache), params)[-1]
-    poses = vo.smoothed_poses()
-    qualities = mark_isolated(vo.qualities, vo.params)
+    poses, qualities = final_poses(vo)
     check_usable(qualities)
     return poses, qualities
+
+
+def final_poses(vo: StereoOdometry) -> tuple[NDArray[np.float64], list[FrameQuality]]:
+    """A whole sequence's poses and qualities as :func:`estimate_poses` reports them.
+
+    The step lengths smoothed over the sequence
+    (:func:`~selfcontra_ros.odometry.stereo_vo.smooth_step_lengths`); a
+    reliable frame with no reliable neighbour reported ``isolated``
+    (:func:`~selfcontra_ros.odometry.stereo_vo.mark_isolated`); an ``ok``
+    frame whose smoothed step length the sequence pins down to no better
+    than ``VOParams.max_length_spread_pct`` reported ``uncertain``
+    (:func:`~selfcontra_ros.odometry.stereo_vo.step_length_spread`,
+    :func:`~selfcontra_ros.odometry.stereo_vo.mark_uncertain`). Unreliable
+    frames keep their poses.
+    """
+    measured = vo.qualities[:]
+    qualities = mark_isolated(measured, vo.params)
+    spread = step_length_spread(measured, vo.params)
+    qualities = mark_uncertain(qualities, spread, vo.params, vo.camera.focal_baseline)
+    return vo.smoothed_poses(), qualities
 
 
 def run_passes(run_pass: Callable[[VOParams, StereoCache | None], _Odometry], params: VOParams) -> list[_Odometry]:
@@ -487,7 +510,11 @@ class OnlineOdometry:
       which ``estimate_poses`` runs over the whole sequence);
     * a reliable frame alone among unreliable ones is reported ``isolated``
       (:class:`~selfcontra_ros.odometry.stereo_vo.IsolationGate`), decided
-      up to ``VOParams.isolated_frames`` frames later.
+      up to ``VOParams.isolated_frames`` frames later;
+    * an ``ok`` frame whose smoothed step length the frames up to then pin
+      down too loosely is reported ``uncertain``
+      (:func:`~selfcontra_ros.odometry.stereo_vo.step_length_spread` over
+      the same frames as the smoother).
 
     :meth:`finish` releases the frames still held at the end of a stream.
     :attr:`last_quality` is the newest frame's quality as measured.
@@ -563,9 +590,11 @@ class OnlineOdometry:
         # The smoother sees the frames base..newest; references are renumbered from base (further back: none).
         qualities = [replace(q, reference=q.reference - base) for q in vo.qualities[base:]]
         smoothed = smooth_step_lengths(np.stack(vo.poses[base:]), qualities, vo.params)
+        spread = step_length_spread(qualities, vo.params)
         while self._decided and self._decided[0].index <= last:
             quality = self._decided.popleft()
             k = quality.index
+            quality = mark_uncertain([quality], spread[k - base : k - base + 1], vo.params, vo.camera.focal_baseline)[0]
             if anchor is None:  # frame 0, the world's origin
                 pose = vo.poses[k]
             else:

@@ -48,8 +48,10 @@ algorithm is one view.
   odometry (:class:`~selfcontra_ros.odometry.run.OnlineOdometry`, on the
   subscription thread): a frame has its pose once
   ``VOParams.smoothing_lag_frames`` (5) more frames have arrived, its step
-  length smoothed with them, and a reliable frame alone among unreliable
-  ones is reported ``isolated``, as the offline ``estimate_poses`` does. A
+  length smoothed with them, a reliable frame alone among unreliable
+  ones is reported ``isolated`` and one whose smoothed step length the
+  frames around it pin down too loosely ``uncertain``, as the offline
+  ``estimate_poses`` does. A
   frame without a reliable pose keeps its depth, disparity and confidence
   and is not labelled (``odometry_unreliable``). Should the odometry raise,
   the frame is published unlabelled (``odometry_error``) and the node starts

@@ -632,7 +632,7 @@ def _online_over(stub: _StubOdometry, frames: int) -> list:
 def test_online_smoothing_holds_on_a_long_sequence() -> None:
     """Past the smoothing span (60 frames) the window slides: the released step lengths stay smoothed (their
     spread about half the measured 5 %), as at the start."""
-    stub = _StubOdometry(VOParams(), set(), noise_pct=5.0)
+    stub = _StubOdometry(VOParams(max_length_spread_pct=0), set(), noise_pct=5.0)  # every step reliable
     decisions = _online_over(stub, 200)
     # The odometry was told to forget what the smoother no longer reads (it would raise on reading it).
     assert len(stub.poses.held()) <= run_module._SMOOTHING_SPAN + VOParams().smoothing_lag_frames + 1
@@ -648,7 +648,7 @@ def test_online_pose_after_a_failure_longer_than_the_lag_is_measured_from_the_la
     """Frames 50-57 fail; the first of them come out (5 frames late) before frame 58 measures across them
     and the odometry rewrites their guesses. Frame 58 must sit 9 steps after frame 49, not after the
     guesses that came out."""
-    decisions = _online_over(_StubOdometry(VOParams(), set(range(50, 58)), noise_pct=0.5), 80)
+    decisions = _online_over(_StubOdometry(VOParams(max_length_spread_pct=0), set(range(50, 58)), noise_pct=0.5), 80)
     assert [d.pose is None for d in decisions[48:60]] == [False, False] + [True] * 8 + [False, False]
     assert decisions[58].pose is not None and decisions[49].pose is not None
     assert decisions[58].pose[2, 3] - decisions[49].pose[2, 3] == pytest.approx(9.0, abs=0.2)
