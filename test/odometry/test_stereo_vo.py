@@ -624,6 +624,7 @@ class _StubOdometry:
 def _online_over(stub: _StubOdometry, frames: int) -> list:
     camera = StereoCamera(fx=500.0, fy=500.0, cx=320.0, cy=96.0, baseline=0.5, width=640, height=192)
     online = OnlineOdometry(camera, stub.params)
+    stub.camera = camera  # type: ignore[attr-defined]
     online._vo = stub  # type: ignore[assignment]
     blank = np.zeros((1, 1), np.uint8)
     return [d for k in range(frames) for d in online.add(k, blank, blank)] + online.finish()
