@@ -390,7 +390,8 @@ def run_online(
     name: str, camera: StereoCamera, frames: Frames, truth: NDArray[np.float64], params: VOParams
 ) -> dict[str, Any]:
     """The labeler node's odometry (:class:`OnlineOdometry`: one pass, step lengths smoothed with
-    ``smoothing_lag_frames`` frames after each, ``isolated`` decided online) over one sequence.
+    ``smoothing_lag_frames`` frames after each, ``isolated`` and ``uncertain`` decided online) over one
+    sequence.
 
     Bad reliable frames as in :func:`run_sequence`; the first frame is not counted as reliable. Also the
     time of each frame's :meth:`OnlineOdometry.add` (95th percentile and worst): the stalls the node sees.

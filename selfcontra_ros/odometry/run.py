@@ -12,7 +12,8 @@
   :mod:`selfcontra_ros.odometry.metrics`.
 
 Unreliable frames keep a constant-velocity guess in ``poses.txt`` (KITTI
-files need one line per frame) and ``reliable: false`` in the quality files:
+files need one line per frame; ``isolated`` and ``uncertain`` frames keep
+their measured pose) and ``reliable: false`` in the quality files:
 callers must not label them (:func:`poses_for_sequence` returns the mask).
 A sequence in which no frame after the first gives a pose with motion raises
 :class:`~selfcontra_ros.odometry.stereo_vo.OdometryError` with the reason
@@ -136,7 +137,7 @@ def final_poses(vo: StereoOdometry) -> tuple[NDArray[np.float64], list[FrameQual
     (:func:`~selfcontra_ros.odometry.stereo_vo.smooth_step_lengths`); a
     reliable frame with no reliable neighbour reported ``isolated``
     (:func:`~selfcontra_ros.odometry.stereo_vo.mark_isolated`); an ``ok``
-    frame whose smoothed step length the sequence pins down to no better
+    frame whose smoothed step length the sequence pins down only to worse
     than ``VOParams.max_length_spread_pct`` reported ``uncertain``
     (:func:`~selfcontra_ros.odometry.stereo_vo.step_length_spread`,
     :func:`~selfcontra_ros.odometry.stereo_vo.mark_uncertain`). Unreliable
@@ -227,10 +228,15 @@ def check_usable(qualities: list[FrameQuality], *, source: str = "the sequence")
     if failures:
         worst, _ = Counter(q.status for q in failures).most_common(1)[0]
         example = next(q for q in failures if q.status == worst)
+        hint = "the images may have too little texture"
+        if worst == "uncertain":
+            hint = (
+                "too few well measured steps to pin the step lengths down (a short sequence's every step is near "
+                "an end); VOParams.max_length_spread_pct: 0 turns this check off"
+            )
         raise OdometryError(
             f"{source}: no usable frame: {len(failures)} of {len(qualities)} frames unreliable "
-            f"(mostly '{worst}', e.g. frame {example.index}: {example.message}); "
-            "the images may have too little texture"
+            f"(mostly '{worst}', e.g. frame {example.index}: {example.message}); {hint}"
         )
     raise OdometryError(f"{source}: no frame with motion")
 

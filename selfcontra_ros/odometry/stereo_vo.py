@@ -37,6 +37,10 @@ this module is the package's own counterpart, built on OpenCV features:
    the sequence is done, a Kalman smoother over the step lengths averages
    each step's noise with its neighbours' (a vehicle's speed changes little
    between frames), trusting reliable steps more than ``weak_scale`` ones.
+   A reliable frame alone among unreliable ones is then reported
+   ``isolated`` (:func:`mark_isolated`), and one whose smoothed step length
+   the smoother itself knows only loosely ``uncertain``
+   (:func:`step_length_spread`, :func:`mark_uncertain`).
 
 Every frame gets a :class:`FrameQuality`: feature, match and inlier counts,
 the RMS reprojection error of the inliers and a status. A frame with too
@@ -358,9 +362,10 @@ class VOParams:
             and 101-130 4 / 440 -> 3 / 414, with a 0.3 px offset 63 / 777
             -> 49 / 726; the node (``--online``) 1-30 5 / 466 -> 2 / 442,
             41-100 9 / 738 -> 3 / 687; street and orbit seeds 1-10
-            and KITTI 06 unchanged (no frame's spread reaches 0.9 %);
-            translation errors unchanged everywhere (the poses are the
-            same). 0.8 would have left 3 and 2 held-out bad frames, for 11 %
+            and KITTI 06 unchanged (no frame flagged); offline poses and
+            translation errors unchanged (the node's poses chain from the
+            last reliable frame, so they may move slightly: its translation
+            figures above read the same to 0.01 %). 0.8 would have left 3 and 2 held-out bad frames, for 11 %
             and 14 % of the reliable ones.
         smoothing_lag_frames: the node's
             :class:`~selfcontra_ros.odometry.run.OnlineOdometry` gives a
@@ -2325,16 +2330,20 @@ def smooth_step_lengths(poses: F64, qualities: list[FrameQuality], params: VOPar
 def step_length_spread(qualities: list[FrameQuality], params: VOParams | None = None) -> F64:
     """Per frame (N,), how well the sequence's measured step lengths pin down the frame's step: percent.
 
-    The standard deviation of the step length that the smoother of
-    :func:`smooth_step_lengths` gives (same model, measurements and gate),
-    with each measurement's noise its own reported one (``length_sigmas``
-    times ``scale_std_pct``, ``weak_length_factor`` times more for a
-    ``weak_scale`` step) and no ``length_floor_pct``, as a percent of the
-    smoothed length. Small where the step and its neighbours were measured
-    well; large where the step was not measured, its neighbours were weak,
-    or at a sequence's ends, where only one side can average its noise
-    out. NaN for the first frame, when fewer than two steps were measured,
-    or when smoothing is off.
+    The smoother of :func:`smooth_step_lengths` (same model and
+    measurements) run with each measurement's noise its own reported one
+    (``length_sigmas`` times ``scale_std_pct``, ``weak_length_factor`` times
+    more for a ``weak_scale`` step) and no ``length_floor_pct`` (its gate
+    judged with these noises); the standard deviation of each smoothed step
+    length, as a percent of that smoother's length (inf where it is not
+    positive). Small where the step and its neighbours were measured well;
+    large where the step was not measured, its neighbours were weak, or at
+    a sequence's ends, where only one side can average its noise out. The
+    process noise is an absolute ``length_acceleration_m``, so for the same
+    per-step noise a slower camera's spread is larger (at 0.3 % per step:
+    0.49 % for 3 m steps, 0.62 % for 1 m, 0.75 % for 0.3 m). NaN for the
+    first frame, when fewer than two steps were measured, or when smoothing
+    is off.
     """
     p = params or VOParams()
     n = len(qualities) - 1

@@ -21,6 +21,7 @@ from selfcontra_ros.odometry.run import (
     check_usable,
     estimate_poses,
     estimate_sequence_poses,
+    final_poses,
     next_pass_params,
     odometry_command,
     poses_for_sequence,
@@ -35,7 +36,9 @@ from selfcontra_ros.odometry.stereo_vo import (
     StereoOdometry,
     VOParams,
     mark_isolated,
+    mark_uncertain,
     smooth_step_lengths,
+    step_length_spread,
 )
 
 WIDTH, HEIGHT, FRAMES = 640, 192, 10
@@ -241,6 +244,16 @@ def test_whole_sequence_without_texture_or_motion_is_an_error(street: Path) -> N
         check_usable(still.qualities)
     with pytest.raises(OdometryError, match="expected"):
         still.add(frame.left[:, :100], frame.right[:, :100])
+    # Three frames whose two steps are both next to an end: measured, but too loosely for the smoother. The
+    # message says why, not "too little texture".
+    common = {"stamp": 0.0, "features": 500, "stereo_matches": 300, "scale_std_pct": 0.35, "translation_m": 3.0}
+    short = [FrameQuality(index=0, status="first", reliable=True, **common)] + [
+        FrameQuality(index=k, status="ok", reliable=True, reference=k - 1, **common) for k in (1, 2)
+    ]
+    marked = mark_uncertain(short, step_length_spread(short), VOParams())
+    assert [q.status for q in marked] == ["first", "uncertain", "uncertain"]
+    with pytest.raises(OdometryError, match="max_length_spread_pct"):
+        check_usable(marked)
 
 
 def test_command_sequence_and_bag_agree(street: Path, street_poses: tuple[np.ndarray, list], tmp_path: Path) -> None:
@@ -538,6 +551,7 @@ def test_a_known_disparity_offset_is_applied_and_checked() -> None:
         {"offset_max_windows": -1},
         {"offset_max_windows": 2},  # fewer than offset_min_windows (3): never applied
         {"isolated_frames": -1},
+        {"max_length_spread_pct": -0.5},
     ):
         with pytest.raises(OdometryError):
             VOParams(**bad)
@@ -546,7 +560,7 @@ def test_a_known_disparity_offset_is_applied_and_checked() -> None:
 @pytest.mark.parametrize("lag", [0, 3, FRAMES])
 def test_online_poses_come_lag_frames_late_with_the_offline_smoother_over_what_was_seen(street: Path, lag: int) -> None:
     """OnlineOdometry releases frame k when frame k + lag arrives (the rest at finish), in order, statuses as
-    mark_isolated gives them; with a lag as long as the sequence its poses are smooth_step_lengths' over the
+    final_poses gives them; with a lag as long as the sequence its poses are smooth_step_lengths' over the
     whole sequence, and each released step is the measured one with the length smoothed."""
     seq = open_sequence(street)
     online = OnlineOdometry(seq.camera, VOParams(smoothing_lag_frames=lag))
@@ -562,7 +576,7 @@ def test_online_poses_come_lag_frames_late_with_the_offline_smoother_over_what_w
     assert [d.stamp_ns for d in decisions] == list(range(FRAMES)) and online.undecided() == []
     assert all(at == frame + lag for frame, at in released), released
     vo = online._vo
-    assert [d.quality for d in decisions] == mark_isolated(vo.qualities, vo.params)
+    assert [d.quality for d in decisions] == final_poses(vo)[1]
     poses = np.stack([d.pose for d in decisions if d.pose is not None])
     assert len(poses) == FRAMES, "every frame of this street sequence is reliable"
     raw = np.stack(vo.poses)
@@ -643,6 +657,35 @@ def test_online_smoothing_holds_on_a_long_sequence() -> None:
     assert np.std(measured[100:] - 1.0) > 0.04  # the stub's noise
     assert np.std(steps[100:] - 1.0) < 0.6 * np.std(measured[100:] - 1.0)  # measured 0.35 (0.48 below); unsmoothed 1
     assert np.std(steps[10:60] - 1.0) < 0.6 * np.std(measured[10:60] - 1.0)
+
+
+def test_online_uncertain_frames_are_decided_as_offline_and_never_anchor() -> None:
+    """With the spread check on (steps measured to 0.7 %, frames 10, 11 and 25 failed): the node's statuses
+    are the offline ones (isolated, then uncertain, from the same measured qualities); some frames beside
+    the failures and at the ends are ``uncertain`` without a pose, and none of them is ever the anchor the
+    next poses are chained from."""
+    stub = _StubOdometry(VOParams(), {10, 11, 25}, noise_pct=0.7, seed=3)
+    camera = StereoCamera(fx=500.0, fy=500.0, cx=320.0, cy=96.0, baseline=0.5, width=640, height=192)
+    online = OnlineOdometry(camera, stub.params)
+    stub.camera = camera  # type: ignore[attr-defined]
+    online._vo = stub  # type: ignore[assignment]
+    blank = np.zeros((1, 1), np.uint8)
+    decisions, anchors = [], set()
+    for k in range(60):
+        decisions += online.add(k, blank, blank)
+        if online._anchor is not None:
+            anchors.add(online._anchor[0])
+    decisions += online.finish()
+    measured = stub.qualities[:]
+    offline = mark_uncertain(
+        mark_isolated(measured, stub.params), step_length_spread(measured, stub.params), stub.params, 250.0
+    )
+    # The same decisions; the spreads in the messages differ a little (the node's smoother sees only the
+    # frames up to smoothing_lag_frames after each).
+    assert [d.quality.status for d in decisions] == [q.status for q in offline]
+    uncertain = [d.quality.index for d in decisions if d.quality.status == "uncertain"]
+    assert uncertain and all(decisions[k].pose is None for k in uncertain), uncertain
+    assert not anchors & set(uncertain), (anchors, uncertain)
 
 
 def test_online_pose_after_a_failure_longer_than_the_lag_is_measured_from_the_last_reliable_frame() -> None:
