@@ -364,8 +364,9 @@ class VOParams:
             41-100 9 / 738 -> 3 / 687; street and orbit seeds 1-10
             and KITTI 06 unchanged (no frame flagged); offline poses and
             translation errors unchanged (the node's poses chain from the
-            last reliable frame, so they may move slightly: its translation
-            figures above read the same to 0.01 %). 0.8 would have left 3 and 2 held-out bad frames, for 11 %
+            last reliable frame, so they may move slightly: its mean
+            translation errors read the same to 0.01 %, single sequences
+            within 0.1 point). 0.8 would have left 3 and 2 held-out bad frames, for 11 %
             and 14 % of the reliable ones.
         smoothing_lag_frames: the node's
             :class:`~selfcontra_ros.odometry.run.OnlineOdometry` gives a
