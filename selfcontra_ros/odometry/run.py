@@ -55,6 +55,7 @@ from selfcontra_ros.odometry.stereo_vo import (
     StereoCache,
     StereoOdometry,
     VOParams,
+    judge_spread,
     mark_isolated,
     mark_uncertain,
     smooth_step_lengths,
@@ -600,7 +601,7 @@ class OnlineOdometry:
         while self._decided and self._decided[0].index <= last:
             quality = self._decided.popleft()
             k = quality.index
-            quality = mark_uncertain([quality], spread[k - base : k - base + 1], vo.params, vo.camera.focal_baseline)[0]
+            quality = judge_spread(quality, float(spread[k - base]), vo.params, vo.camera.focal_baseline)
             if anchor is None:  # frame 0, the world's origin
                 pose = vo.poses[k]
             else:

@@ -84,6 +84,7 @@ __all__ = [
     "StereoMatches",
     "StereoOdometry",
     "VOParams",
+    "judge_spread",
     "mark_isolated",
     "mark_uncertain",
     "smooth_step_lengths",
@@ -1713,7 +1714,7 @@ class StereoOdometry:
         """
         p = self.params
         reasons = []
-        limit = p.max_step_error_pct * max(1.0, p.reference_focal_baseline / self.camera.focal_baseline)
+        limit = p.max_step_error_pct * _coarseness(p, self.camera.focal_baseline)
         if not p.scale_sigmas * quality.scale_std_pct <= limit:
             reasons.append(f"{p.scale_sigmas:g}-sigma step uncertainty {p.scale_sigmas * quality.scale_std_pct:.2f} %")
         if not quality.scale_bias_pct <= limit * p.bias_share:
@@ -2363,31 +2364,33 @@ def step_length_spread(qualities: list[FrameQuality], params: VOParams | None = 
 def mark_uncertain(
     qualities: Iterable[FrameQuality], spread: F64, params: VOParams | None = None, focal_baseline: float = 0.0
 ) -> list[FrameQuality]:
-    """The qualities with every ``ok`` frame whose :func:`step_length_spread` exceeds
-    ``params.max_length_spread_pct`` reported unreliable (status ``uncertain``); its pose is kept.
+    """The qualities with every frame :func:`judge_spread` finds too loosely pinned down reported
+    ``uncertain``; ``spread`` is per frame, as :func:`step_length_spread` returns it."""
+    return [
+        judge_spread(q, float(spread[k]) if k < len(spread) else math.nan, params, focal_baseline)
+        for k, q in enumerate(qualities)
+    ]
+
+
+def judge_spread(
+    quality: FrameQuality, spread: float, params: VOParams | None = None, focal_baseline: float = 0.0
+) -> FrameQuality:
+    """``quality`` reported unreliable (status ``uncertain``; its pose is kept) when it is ``ok`` and its
+    :func:`step_length_spread` ``spread`` exceeds ``params.max_length_spread_pct``; else as it is.
 
     Only frames measured from the frame before: one measured across a gap
     (its reference further back) has no step of its own for the smoother,
-    and its pose is as good as the check that passed it. ``spread`` is per
-    frame, as :func:`step_length_spread` returns it. A
-    camera's ``focal_baseline`` (``fx * b``) below
-    ``params.reference_focal_baseline`` raises the limit by their ratio, as
-    the scale check's (0: KITTI's). Unchanged when
-    ``max_length_spread_pct`` is 0.
+    and its pose is as good as the check that passed it. A camera's
+    ``focal_baseline`` (``fx * b``) below ``params.reference_focal_baseline``
+    raises the limit by their ratio, as the scale check's (0: KITTI's).
+    Never when ``max_length_spread_pct`` is 0.
     """
     p = params or VOParams()
-    out = list(qualities)
-    if p.max_length_spread_pct <= 0:
-        return out
-    limit = p.max_length_spread_pct * max(1.0, p.reference_focal_baseline / focal_baseline if focal_baseline else 1.0)
-    for k, quality in enumerate(out):
-        if quality.status == "ok" and quality.reference == quality.index - 1 and k < len(spread) and spread[k] > limit:
-            out[k] = _uncertain(quality, float(spread[k]), limit)
-    return out
-
-
-def _uncertain(quality: FrameQuality, spread: float, limit: float) -> FrameQuality:
-    """``quality`` reported unreliable for a step length the sequence pins down only to ``spread`` percent."""
+    if p.max_length_spread_pct <= 0 or quality.status != "ok" or quality.reference != quality.index - 1:
+        return quality
+    limit = p.max_length_spread_pct * _coarseness(p, focal_baseline)
+    if not spread > limit:
+        return quality
     return replace(
         quality,
         status="uncertain",
@@ -2395,6 +2398,12 @@ def _uncertain(quality: FrameQuality, spread: float, limit: float) -> FrameQuali
         message=f"the smoothed step length is known to {spread:.2f} % (more than {limit:.2f} %): too few well "
         "measured steps around it",
     )
+
+
+def _coarseness(p: VOParams, focal_baseline: float) -> float:
+    """How much a camera's step-length limits grow over KITTI's: ``reference_focal_baseline`` over its
+    ``fx * b``, at least 1 (``focal_baseline`` 0: KITTI's)."""
+    return max(1.0, p.reference_focal_baseline / focal_baseline) if focal_baseline > 0 else 1.0
 
 
 def _length_measurements(

@@ -635,13 +635,21 @@ class _StubOdometry:
         return OdometryResult(pose.copy(), quality)
 
 
-def _online_over(stub: _StubOdometry, frames: int) -> list:
-    camera = StereoCamera(fx=500.0, fy=500.0, cx=320.0, cy=96.0, baseline=0.5, width=640, height=192)
-    online = OnlineOdometry(camera, stub.params)
-    stub.camera = camera  # type: ignore[attr-defined]
+_STUB_CAMERA = StereoCamera(fx=500.0, fy=500.0, cx=320.0, cy=96.0, baseline=0.5, width=640, height=192)
+_BLANK = np.zeros((1, 1), np.uint8)
+
+
+def _online_on(stub: _StubOdometry) -> OnlineOdometry:
+    """An OnlineOdometry that reads ``stub`` instead of measuring images (feed it ``_BLANK``)."""
+    online = OnlineOdometry(_STUB_CAMERA, stub.params)
+    stub.camera = _STUB_CAMERA  # type: ignore[attr-defined]
     online._vo = stub  # type: ignore[assignment]
-    blank = np.zeros((1, 1), np.uint8)
-    return [d for k in range(frames) for d in online.add(k, blank, blank)] + online.finish()
+    return online
+
+
+def _online_over(stub: _StubOdometry, frames: int) -> list:
+    online = _online_on(stub)
+    return [d for k in range(frames) for d in online.add(k, _BLANK, _BLANK)] + online.finish()
 
 
 def test_online_smoothing_holds_on_a_long_sequence() -> None:
@@ -665,20 +673,19 @@ def test_online_uncertain_frames_are_decided_as_offline_and_never_anchor() -> No
     the failures and at the ends are ``uncertain`` without a pose, and none of them is ever the anchor the
     next poses are chained from."""
     stub = _StubOdometry(VOParams(), {10, 11, 25}, noise_pct=0.7, seed=3)
-    camera = StereoCamera(fx=500.0, fy=500.0, cx=320.0, cy=96.0, baseline=0.5, width=640, height=192)
-    online = OnlineOdometry(camera, stub.params)
-    stub.camera = camera  # type: ignore[attr-defined]
-    online._vo = stub  # type: ignore[assignment]
-    blank = np.zeros((1, 1), np.uint8)
+    online = _online_on(stub)
     decisions, anchors = [], set()
     for k in range(60):
-        decisions += online.add(k, blank, blank)
+        decisions += online.add(k, _BLANK, _BLANK)
         if online._anchor is not None:
             anchors.add(online._anchor[0])
     decisions += online.finish()
     measured = stub.qualities[:]
     offline = mark_uncertain(
-        mark_isolated(measured, stub.params), step_length_spread(measured, stub.params), stub.params, 250.0
+        mark_isolated(measured, stub.params),
+        step_length_spread(measured, stub.params),
+        stub.params,
+        _STUB_CAMERA.focal_baseline,
     )
     # The same decisions; the spreads in the messages differ a little (the node's smoother sees only the
     # frames up to smoothing_lag_frames after each).
