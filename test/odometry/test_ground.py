@@ -1,0 +1,103 @@
+"""The road plane and the step measured on it, against the synthetic street's exact depth and poses."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from numpy.typing import NDArray
+
+from selfcontra_ros.datasets.synthetic import make_scene
+from selfcontra_ros.geometry import StereoCamera, invert_pose
+from selfcontra_ros.odometry.ground import GroundPlane, _rays, fit_ground, road_step
+
+WIDTH, HEIGHT, FRAMES = 640, 192, 6
+
+
+def _grey(image: NDArray[np.uint8]) -> NDArray[np.uint8]:
+    return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
+
+
+@pytest.fixture(scope="module")
+def street() -> tuple[StereoCamera, list, NDArray[np.float64]]:
+    """Six frames of the synthetic street (640x192, about 1 m per frame): camera, rendered frames, true poses."""
+    built = make_scene("street", 2, WIDTH, HEIGHT, frames=FRAMES)
+    return built.camera, [built.render(k) for k in range(FRAMES)], built.poses(FRAMES)
+
+
+def _plane_disparity(plane: GroundPlane, camera: StereoCamera) -> NDArray[np.float64]:
+    return camera.focal_baseline * (_rays(camera, plane.uv) @ plane.m)
+
+
+def test_the_road_plane_matches_the_true_disparity(street: tuple[StereoCamera, list, NDArray[np.float64]]) -> None:
+    """On every frame the plane's disparity at its pixels is the true one to a few hundredths of a pixel
+    (median; measured under 0.02 px), and the camera's height comes out the same in every frame."""
+    camera, frames, _ = street
+    heights = []
+    for f in frames:
+        plane = fit_ground(_grey(f.left), _grey(f.right), camera)
+        assert plane is not None
+        cols, rows = plane.uv[:, 0].astype(int), plane.uv[:, 1].astype(int)
+        truth = f.disparity[rows, cols]
+        ok = np.isfinite(truth)
+        assert ok.mean() > 0.9 and len(plane.uv) > 1000
+        assert abs(np.median(_plane_disparity(plane, camera)[ok] - truth[ok])) < 0.06
+        # Its pixels lie on the road: within half a pixel of the plane's disparity, nearly all.
+        assert np.mean(np.abs(_plane_disparity(plane, camera)[ok] - truth[ok]) < 0.5) > 0.9
+        heights.append(plane.height_m)
+    assert np.ptp(heights) < 0.02 * np.mean(heights)
+
+
+def test_a_disparity_offset_moves_the_plane_by_it(street: tuple[StereoCamera, list, NDArray[np.float64]]) -> None:
+    camera, frames, _ = street
+    plane = fit_ground(_grey(frames[0].left), _grey(frames[0].right), camera)
+    assert plane is not None
+    moved = plane.shifted(0.3, camera)
+    np.testing.assert_allclose(_plane_disparity(moved, camera) - _plane_disparity(plane, camera), 0.3, atol=1e-9)
+
+
+def test_no_ground_where_the_view_holds_none() -> None:
+    """A textured wall facing the camera (constant disparity everywhere) is no road below the camera."""
+    rng = np.random.default_rng(0)
+    camera = StereoCamera(fx=600.0, fy=600.0, cx=320.0, cy=96.0, baseline=0.5, width=WIDTH, height=HEIGHT)
+    texture = cv2.GaussianBlur(rng.integers(0, 256, (HEIGHT, WIDTH + 40)).astype(np.float32), (0, 0), 1.2)
+    texture = cv2.normalize(texture, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    left, right = texture[:, 20 : 20 + WIDTH].copy(), texture[:, 40 : 40 + WIDTH].copy()  # disparity 20 px
+    assert fit_ground(left, right, camera) is None
+
+
+def test_the_road_gives_the_steps_length_from_a_wrong_start(
+    street: tuple[StereoCamera, list, NDArray[np.float64]],
+) -> None:
+    """Started 5 % long and a degree off in direction, or 5 % short, the road's step is the true one within
+    1.5 % (measured 0.2-1.1 % on these 1 m steps at 640x192)."""
+    camera, frames, poses = street
+    turn = cv2.Rodrigues(np.array([0.0, np.radians(1.0), 0.0]))[0]
+    for k in range(1, FRAMES):
+        plane = fit_ground(_grey(frames[k - 1].left), _grey(frames[k - 1].right), camera)
+        assert plane is not None
+        truth = invert_pose(poses[k]) @ poses[k - 1]
+        length = float(np.linalg.norm(truth[:3, 3]))
+        for scale, direction in ((1.05, turn), (0.95, np.eye(3))):
+            start = truth.copy()
+            start[:3, 3] = scale * (direction @ truth[:3, 3])
+            step = road_step(plane, _grey(frames[k - 1].left), _grey(frames[k].left), camera, start)
+            assert step is not None
+            assert abs(step.length_m / length - 1.0) < 0.015, (k, scale, step.length_m / length)
+            assert step.agreement > 0.8
+
+
+def test_a_road_that_does_not_move_as_a_plane_gives_no_step(
+    street: tuple[StereoCamera, list, NDArray[np.float64]],
+) -> None:
+    """The later image of another place (upside down): no length, rather than a wrong one."""
+    camera, frames, poses = street
+    plane = fit_ground(_grey(frames[0].left), _grey(frames[0].right), camera)
+    assert plane is not None
+    truth = invert_pose(poses[1]) @ poses[0]
+    elsewhere = np.ascontiguousarray(_grey(frames[1].left)[::-1])
+    assert road_step(plane, _grey(frames[0].left), elsewhere, camera, truth) is None
+    # And a start without translation cannot be searched along.
+    still = truth.copy()
+    still[:3, 3] = 0.0
+    assert road_step(plane, _grey(frames[0].left), _grey(frames[1].left), camera, still) is None
