@@ -246,7 +246,11 @@ def _cmd_odometry(args: argparse.Namespace) -> int:
         stereo_input=_stereo_input(args, Path(args.input)) if is_bag(Path(args.input)) else None,
         reference_poses=args.pose_source is not None,
         slop=args.slop,
-        params=VOParams(disparity_offset_px=args.disparity_offset, estimate_disparity_offset=not args.fixed_offset),
+        params=VOParams(
+            disparity_offset_px=args.disparity_offset,
+            estimate_disparity_offset=not args.fixed_offset,
+            road_steps=not args.no_road,
+        ),
     )
     return 0
 
@@ -484,6 +488,11 @@ def build_parser() -> argparse.ArgumentParser:
     )  # fmt: skip
     odo.add_argument(
         "--fixed-offset", action="store_true", help="do not estimate the disparity offset: keep --disparity-offset"
+    )
+    odo.add_argument(
+        "--no-road",
+        action="store_true",
+        help="do not measure the steps a second time on the road ahead (a camera that sees no ground plane below it)",
     )
     odo_bag = odo.add_argument_group("a robot's own bag")
     odo_bag.add_argument("--slop", type=float, default=0.0, help="pair left/right images within S seconds")

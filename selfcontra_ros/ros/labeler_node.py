@@ -581,6 +581,14 @@ class LabelerNode(Node):
             ),
         )
         self.declare_parameter(
+            "odometry_road_steps",
+            True,
+            _descriptor(
+                "pose_source odometry: measure each step a second time on the road ahead (the ground plane below "
+                "the camera); false for a camera that never sees one"
+            ),
+        )
+        self.declare_parameter(
             "world_frame",
             "",
             _descriptor("pose_source tf: the fixed frame of the poses, e.g. odom or map (required there)"),
@@ -710,6 +718,7 @@ class LabelerNode(Node):
             self._odometry_params = VOParams(
                 disparity_offset_px=float(p("odometry_disparity_offset_px").value),
                 estimate_disparity_offset=bool(p("odometry_estimate_offset").value),
+                road_steps=bool(p("odometry_road_steps").value),
             )
         except (OdometryError, TypeError, ValueError) as exc:
             raise LabelerConfigError(f"parameter 'odometry_disparity_offset_px': {exc}") from exc

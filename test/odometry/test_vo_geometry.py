@@ -17,6 +17,7 @@ from selfcontra_ros.odometry.stereo_vo import (
     IsolationGate,
     StereoOdometry,
     VOParams,
+    _agreed_road_lengths,
     _Features,
     _hamming,
     _pose_from_vector,
@@ -472,6 +473,58 @@ def test_a_run_of_steps_measured_on_a_vehicle_does_not_pull_its_neighbours() -> 
         error = np.abs(lengths / true_lengths - 1.0)
         worst[gate] = float(np.delete(error, range(10, 15)).max()) if gate == 0 else float(error.max())
     assert worst[0.0] > 0.04 and worst[3.0] < 0.015, worst
+
+
+def test_road_lengths_pin_a_run_of_short_weak_steps_and_a_lone_wrong_one_is_left_out() -> None:
+    """A highway's failure: sixteen ``weak_scale`` steps measured 4 % short together (far corners read
+    too near), with the road's lengths within 0.3 %. Smoothed with the road, every step is within 1 % of
+    the truth (measured: 0.3 %); without it (``road_steps`` off) they stay up to 3 % short. A road length
+    12 % off with no neighbour agreeing is not used; two that agree with each other are."""
+    rng = np.random.default_rng(3)
+    true_lengths = 2.8 + 0.03 * np.arange(30)
+    measured = true_lengths * (1.0 + rng.normal(0.0, 0.005, 30))
+    measured[8:24] *= 0.96
+    reliable = np.ones(30, dtype=bool)
+    reliable[8:24] = False
+    poses = _straight_run(measured)
+    road = true_lengths * (1.0 + rng.normal(0.0, 0.003, 30))
+    road[20] *= 0.88
+    qualities = _qualities(measured, std_pct=0.4, reliable=reliable)
+    qualities = [qualities[0]] + [replace(q, road_length_m=float(r)) for q, r in zip(qualities[1:], road, strict=True)]
+
+    def errors(params: VOParams) -> NDArray[np.float64]:
+        smoothed = smooth_step_lengths(poses, qualities, params)
+        return np.linalg.norm((np.linalg.inv(smoothed[:-1]) @ smoothed[1:])[:, :3, 3], axis=1) / true_lengths - 1.0
+
+    with_road, without = errors(VOParams()), errors(VOParams(road_steps=False))
+    assert np.abs(with_road).max() < 0.01, np.abs(with_road).max()
+    assert without.min() < -0.025
+    # The agreement rule: the lone wrong length goes, its neighbours stay; road_steps off drops them all.
+    agreed = _agreed_road_lengths(qualities[1:], VOParams())
+    assert np.isnan(agreed[20]) and np.isfinite(agreed[[19, 21]]).all() and np.isfinite(agreed).sum() == 29
+    assert np.isnan(_agreed_road_lengths(qualities[1:], VOParams(road_steps=False))).all()
+    pair = [replace(q, road_length_m=q.road_length_m * (0.88 if k == 21 else 1.0)) for k, q in enumerate(qualities[1:])]
+    assert np.isfinite(_agreed_road_lengths(pair, VOParams())[[20, 21]]).all()
+
+
+def test_two_measurements_of_a_step_weigh_as_their_noises_say() -> None:
+    """The smoother given two measurements of each step (columns) is the smoother given their
+    inverse-variance mean, and a column left unmeasured is as if absent."""
+    rng = np.random.default_rng(4)
+    truth = 3.0 + 0.02 * np.arange(20)
+    a = truth + rng.normal(0.0, 0.02, 20)
+    b = truth + rng.normal(0.0, 0.05, 20)
+    both, _ = _rts_constant_velocity(np.column_stack([a, b]), np.ones((20, 2), bool),
+                                     np.column_stack([np.full(20, 0.02), np.full(20, 0.05)]), 0.02)  # fmt: skip
+    w_a, w_b = 1 / 0.02**2, 1 / 0.05**2
+    mean = (w_a * a + w_b * b) / (w_a + w_b)
+    merged, _ = _rts_constant_velocity(mean, np.ones(20, bool), np.full(20, (w_a + w_b) ** -0.5), 0.02)
+    np.testing.assert_allclose(both, merged, rtol=1e-9)
+    first_only = np.column_stack([np.ones(20, bool), np.zeros(20, bool)])
+    only_a, _ = _rts_constant_velocity(np.column_stack([a, b]), first_only,
+                                       np.column_stack([np.full(20, 0.02), np.full(20, 0.05)]), 0.02)  # fmt: skip
+    plain, _ = _rts_constant_velocity(a, np.ones(20, bool), np.full(20, 0.02), 0.02)
+    np.testing.assert_allclose(only_a, plain, rtol=1e-12)
 
 
 def test_smoothed_step_lengths_are_nearer_the_truth_and_keep_directions() -> None:

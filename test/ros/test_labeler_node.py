@@ -556,6 +556,9 @@ def test_the_odometry_takes_the_rigs_disparity_offset(
     assert odometry.last_quality.status != "first"  # a measured frame, not only the first one
     with pytest.raises(LabelerConfigError, match="disparity_offset_px"):
         labeler_node(pose_source="odometry", odometry_disparity_offset_px=7.0)
+    # The road's second measure of each step: on by default, off for a camera that never sees the ground.
+    assert node._odometry_params.road_steps
+    assert not labeler_node(pose_source="odometry", odometry_road_steps=False)._odometry_params.road_steps
 
 
 def test_an_odometry_error_publishes_the_frame_and_starts_over(
