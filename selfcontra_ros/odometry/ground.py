@@ -54,7 +54,8 @@ F64 = NDArray[np.float64]
 
 @dataclass(frozen=True)
 class GroundParams:
-    """How the road is found and aligned (the defaults were set on synthetic highway seeds 1-30).
+    """How the road is found and aligned (the defaults were set by looking at a few synthetic highway, orbit
+    and street sequences and KITTI 06, not by a sweep: README, "Stereo visual odometry", fourteenth round).
 
     Attributes:
         top_margin: the region searched starts this share of the image
@@ -86,11 +87,12 @@ class GroundPlane:
 
     Attributes:
         m: (3,) the plane's normal over its distance from the camera, 1/metres.
-        uv: (N, 2) left-image pixels on the plane (every other row and column).
+        uv: (N, 2) left-image pixels on the plane (every other row and column; int16, as the stereo cache
+            keeps it: up to 40 kB at KITTI size).
     """
 
     m: F64
-    uv: F64
+    uv: NDArray[np.int16]
 
     @property
     def height_m(self) -> float:
@@ -123,7 +125,7 @@ class RoadStep:
     agreement: float
 
 
-def _rays(camera: StereoCamera, uv: F64) -> F64:
+def _rays(camera: StereoCamera, uv: NDArray[Any]) -> F64:
     return np.column_stack([(uv[:, 0] - camera.cx) / camera.fx, (uv[:, 1] - camera.cy) / camera.fy, np.ones(len(uv))])
 
 
@@ -147,13 +149,14 @@ def fit_ground(
     """The road plane of a rectified grey pair, or None where no plane below the camera holds enough pixels."""
     p = params or GroundParams()
     h, w = left.shape
+    w -= w % 2  # whole pixel pairs: half-resolution pixel c covers full-resolution columns 2c and 2c + 1
     top = math.ceil(camera.cy + p.top_margin * h)
     top += (h - top) % 2
     if h - top < 16:
         return None
     # Semi-global matching at half resolution: a dense disparity for the plane's search, cheaply.
-    small_l = cv2.resize(left[top:], ((w // 2), (h - top) // 2), interpolation=cv2.INTER_AREA)
-    small_r = cv2.resize(right[top:], ((w // 2), (h - top) // 2), interpolation=cv2.INTER_AREA)
+    small_l = cv2.resize(left[top:, :w], (w // 2, (h - top) // 2), interpolation=cv2.INTER_AREA)
+    small_r = cv2.resize(right[top:, :w], (w // 2, (h - top) // 2), interpolation=cv2.INTER_AREA)
     # The nearest road point in view (the bottom row) at the lowest height allowed, in half-resolution pixels.
     nearest = camera.focal_baseline * (h - camera.cy) / (camera.fy * p.height_range_m[0]) / 2.0
     reach = 16 * max(1, math.ceil(nearest / 16))
@@ -186,7 +189,10 @@ def fit_ground(
         if refined is None or not _plausible(refined, p):
             return None
         plane = refined
-    return GroundPlane(plane, uv_full[np.abs(a @ plane - d) < 0.5])
+    chosen = np.abs(a @ plane - d) < 0.5
+    if chosen.sum() < _min_pixels(p, camera):
+        return None
+    return GroundPlane(plane, uv_full[chosen].astype(np.int16))
 
 
 def _plausible(m: F64, p: GroundParams) -> bool:
@@ -249,7 +255,7 @@ def _align_pass(
         jac = -_sample(grad_r, u_right, uv[:, 1])[:, None] * a
         weight = 1.0 / (1.0 + (residual / p.cauchy_grey) ** 2)
         normal = (jac * weight[:, None]).T @ jac
-        if np.linalg.cond(normal) > 1e12:
+        if not np.isfinite(normal).all() or np.linalg.cond(normal) > 1e12:
             return None
         step = -np.linalg.solve(normal, (jac * weight[:, None]).T @ residual)
         m = m + step
@@ -291,14 +297,17 @@ def road_step(
         ):
             starts.append(vector)
     # Only the rows below the road's highest pixel (less a tenth of the image, for the motion) are read.
-    top = max(0, int(plane.uv[:, 1].min() - 0.1 * camera.height))
+    if len(plane.uv) < _min_pixels(p, camera):
+        return None
+    uv = plane.uv.astype(np.float64)
+    top = max(0, int(uv[:, 1].min() - 0.1 * camera.height))
     smooth_e = cv2.GaussianBlur(earlier[top:].astype(np.float32), (5, 5), 0.7)
     smooth_l = cv2.GaussianBlur(later[top:].astype(np.float32), (5, 5), 0.7)
     grad_u = cv2.Sobel(smooth_l, cv2.CV_32F, 1, 0, ksize=3) / 8.0
     grad_v = cv2.Sobel(smooth_l, cv2.CV_32F, 0, 1, ksize=3) / 8.0
-    rays = _rays(camera, plane.uv)
+    rays = _rays(camera, uv)
     points = rays / (rays @ plane.m)[:, None]  # on the plane, earlier frame
-    target = _sample(smooth_e, plane.uv[:, 0], plane.uv[:, 1] - top)
+    target = _sample(smooth_e, uv[:, 0], uv[:, 1] - top)
     rotation = t_cur_ref[:3, :3]
 
     def project(rotated: F64, t: F64) -> tuple[F64, F64, F64]:
@@ -350,7 +359,7 @@ def road_step(
         jac = np.column_stack([d_rot, dy])
         weight = 1.0 / (1.0 + (r / p.cauchy_grey) ** 2)
         normal = (jac * weight[:, None]).T @ jac
-        if np.linalg.cond(normal) > 1e12:
+        if not np.isfinite(normal).all() or np.linalg.cond(normal) > 1e12:
             return None
         step = -np.linalg.solve(normal, (jac * weight[:, None]).T @ r)
         w = step[:3]

@@ -70,7 +70,7 @@ def test_the_road_gives_the_steps_length_from_a_wrong_start(
     street: tuple[StereoCamera, list, NDArray[np.float64]],
 ) -> None:
     """Started 5 % long and a degree off in direction, or 5 % short, the road's step is the true one within
-    1.5 % (measured 0.2-1.1 % on these 1 m steps at 640x192)."""
+    2 % (measured 0.2-1.1 % on these 1 m steps at 640x192)."""
     camera, frames, poses = street
     turn = cv2.Rodrigues(np.array([0.0, np.radians(1.0), 0.0]))[0]
     for k in range(1, FRAMES):
@@ -83,7 +83,7 @@ def test_the_road_gives_the_steps_length_from_a_wrong_start(
             start[:3, 3] = scale * (direction @ truth[:3, 3])
             step = road_step(plane, _grey(frames[k - 1].left), _grey(frames[k].left), camera, start)
             assert step is not None
-            assert abs(step.length_m / length - 1.0) < 0.015, (k, scale, step.length_m / length)
+            assert abs(step.length_m / length - 1.0) < 0.02, (k, scale, step.length_m / length)
             assert step.agreement > 0.8
 
 

@@ -73,7 +73,7 @@ def test_street_poses_match_the_truth(street: Path, street_poses: tuple[np.ndarr
 
 
 def test_the_road_measures_the_street_steps(street: Path, street_poses: tuple[np.ndarray, list]) -> None:
-    """Every step of the street is measured a second time on the road (``road_steps``), within 1.5 % of
+    """Every step of the street is measured a second time on the road (``road_steps``), within 2 % of
     its true length (measured: 0.1-0.9 % at 640x192, 1 m steps); off, no step is."""
     _, quality = street_poses
     truth = open_sequence(street).poses
@@ -83,7 +83,7 @@ def test_the_road_measures_the_street_steps(street: Path, street_poses: tuple[np
     assert np.isfinite(road).sum() >= len(road) - 1
     assert all(q.road_pixels > 1000 for q in quality[1:] if np.isfinite(q.road_length_m))
     error = np.abs(road / true_lengths - 1.0)
-    assert np.nanmax(error) < 0.015, error
+    assert np.nanmax(error) < 0.02, error
     _, without = estimate_sequence_poses(street, params=VOParams(road_steps=False))
     assert all(np.isnan(q.road_length_m) and q.road_pixels == 0 for q in without)
 
@@ -536,6 +536,10 @@ def test_the_second_pass_reuses_the_first_passs_stereo_matching(street_long: tup
     np.testing.assert_allclose(np.asarray(reused.poses), np.asarray(measured.poses), rtol=0, atol=1e-9)
     assert [q.status for q in reused.qualities] == [q.status for q in measured.qualities]
     assert [q.inliers for q in reused.qualities] == [q.inliers for q in measured.qualities]
+    # The road's plane comes from the cache too, moved by the pass's offset as a measured one is.
+    road = [[q.road_length_m for q in vo.qualities] for vo in (reused, measured)]
+    np.testing.assert_allclose(road[0], road[1], rtol=0, atol=1e-9, equal_nan=True)
+    assert np.isfinite(road[0]).sum() >= len(pairs) - 2
     assert all(q.disparity_offset_px == 0.45 for q in reused.qualities)
     assert sum(q.reliable for q in reused.qualities) >= len(pairs) - 2  # a real run, not an empty one
     # Front-end parameters other than the offset miss: a different feature count measures again.
