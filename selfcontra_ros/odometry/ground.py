@@ -138,6 +138,17 @@ def _sample(image: NDArray[Any], u: F64, v: F64) -> F64:
     return cv2.remap(image, mu, mv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).ravel()[:n].astype(np.float64)
 
 
+def _cauchy_step(jac: F64, residual: F64, scale: float) -> F64 | None:
+    """One Gauss-Newton step of the Cauchy-weighted least squares (weights ``1 / (1 + (r / scale)^2)``,
+    iteratively reweighted); None where the normal equations are not finite or nearly singular."""
+    weight = 1.0 / (1.0 + (residual / scale) ** 2)
+    normal = (jac * weight[:, None]).T @ jac
+    if not np.isfinite(normal).all() or np.linalg.cond(normal) > 1e12:
+        return None
+    step: F64 = -np.linalg.solve(normal, (jac * weight[:, None]).T @ residual)
+    return step
+
+
 def _min_pixels(params: GroundParams, camera: StereoCamera) -> int:
     return max(200, int(params.min_pixels * camera.width * camera.height / 1e6))
 
@@ -253,11 +264,9 @@ def _align_pass(
         u_right = uv[:, 0] - a @ m
         residual = _sample(grey_r, u_right, uv[:, 1]) - target
         jac = -_sample(grad_r, u_right, uv[:, 1])[:, None] * a
-        weight = 1.0 / (1.0 + (residual / p.cauchy_grey) ** 2)
-        normal = (jac * weight[:, None]).T @ jac
-        if not np.isfinite(normal).all() or np.linalg.cond(normal) > 1e12:
+        step = _cauchy_step(jac, residual, p.cauchy_grey)
+        if step is None:
             return None
-        step = -np.linalg.solve(normal, (jac * weight[:, None]).T @ residual)
         m = m + step
         if np.abs(a @ step).max() < 0.002:  # pixels of disparity
             break
@@ -356,12 +365,9 @@ def road_step(
                               -(gu * camera.fx * y[:, 0] + gv * camera.fy * y[:, 1]) * inv_z**2])  # fmt: skip
         # Y = (I + [w]x) turn R X + t: a small rotation w moves Y by w x (turn R X).
         d_rot = np.cross(base, dy)
-        jac = np.column_stack([d_rot, dy])
-        weight = 1.0 / (1.0 + (r / p.cauchy_grey) ** 2)
-        normal = (jac * weight[:, None]).T @ jac
-        if not np.isfinite(normal).all() or np.linalg.cond(normal) > 1e12:
+        step = _cauchy_step(np.column_stack([d_rot, dy]), r, p.cauchy_grey)
+        if step is None:
             return None
-        step = -np.linalg.solve(normal, (jac * weight[:, None]).T @ r)
         w = step[:3]
         turn = cv2.Rodrigues(w)[0] @ turn
         t = t + step[-3:]
