@@ -492,7 +492,8 @@ def build_parser() -> argparse.ArgumentParser:
     odo.add_argument(
         "--no-road",
         action="store_true",
-        help="do not measure the steps a second time on the road ahead (a camera that sees no ground plane below it)",
+        help="do not measure the steps a second time on the road ahead (their lengths, rotations and directions; "
+        "a camera that sees no ground plane below it)",
     )
     odo_bag = odo.add_argument_group("a robot's own bag")
     odo_bag.add_argument("--slop", type=float, default=0.0, help="pair left/right images within S seconds")

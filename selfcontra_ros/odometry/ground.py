@@ -47,7 +47,7 @@ from numpy.typing import NDArray
 
 from selfcontra_ros.geometry import StereoCamera
 
-__all__ = ["GroundParams", "GroundPlane", "RoadStep", "fit_ground", "road_step"]
+__all__ = ["GroundParams", "GroundPlane", "RoadStep", "fit_ground", "road_costs", "road_step"]
 
 F64 = NDArray[np.float64]
 
@@ -273,6 +273,55 @@ def _align_pass(
     return m if np.all(np.isfinite(m)) else None
 
 
+def _road_images(
+    plane: GroundPlane, earlier: NDArray[np.uint8], later: NDArray[np.uint8], camera: StereoCamera
+) -> tuple[int, NDArray[Any], F64, F64]:
+    """What a step's alignment reads: the first image row read (the road's highest pixel less a tenth of
+    the image, for the motion), the later image from there blurred, the road pixels' points on the plane
+    (earlier frame) and the earlier image's blurred grey levels at them."""
+    uv = plane.uv.astype(np.float64)
+    top = max(0, int(uv[:, 1].min() - 0.1 * camera.height))
+    smooth_e = cv2.GaussianBlur(earlier[top:].astype(np.float32), (5, 5), 0.7)
+    smooth_l = cv2.GaussianBlur(later[top:].astype(np.float32), (5, 5), 0.7)
+    rays = _rays(camera, uv)
+    points = rays / (rays @ plane.m)[:, None]
+    return top, smooth_l, points, _sample(smooth_e, uv[:, 0], uv[:, 1] - top)
+
+
+def _project(camera: StereoCamera, top: int, y: F64) -> tuple[F64, F64, F64]:
+    """Pixels (u, v - top) of the points ``y`` (later frame), and ``y``."""
+    return camera.fx * y[:, 0] / y[:, 2] + camera.cx, camera.fy * y[:, 1] / y[:, 2] + camera.cy - top, y
+
+
+def _in_view(camera: StereoCamera, top: int, u: F64, v: F64, y: F64) -> NDArray[np.bool_]:
+    return (y[:, 2] > 0.5) & (u >= 1) & (u <= camera.width - 2) & (v >= 1) & (v <= camera.height - top - 2)
+
+
+def road_costs(
+    plane: GroundPlane,
+    earlier: NDArray[np.uint8],
+    later: NDArray[np.uint8],
+    camera: StereoCamera,
+    motions: list[F64],
+    params: GroundParams | None = None,
+) -> F64:
+    """How well each motion (``T_cur_ref``, 4x4) aligns ``earlier``'s road with ``later``: the mean Cauchy
+    loss over the road pixels every one of them keeps in view, so that the costs compare (inf for all
+    where fewer than ``min_pixels`` stay)."""
+    p = params or GroundParams()
+    top, smooth_l, points, target = _road_images(plane, earlier, later, camera)
+    projected = [_project(camera, top, points @ m[:3, :3].T + m[:3, 3]) for m in motions]
+    keep = np.ones(len(points), dtype=bool)
+    for u, v, y in projected:
+        keep &= _in_view(camera, top, u, v, y)
+    if keep.sum() < _min_pixels(p, camera):
+        return np.full(len(motions), np.inf)
+    return np.array([
+        np.mean(np.log1p(((_sample(smooth_l, u[keep], v[keep]) - target[keep]) / p.cauchy_grey) ** 2))
+        for u, v, _ in projected
+    ])  # fmt: skip
+
+
 def road_step(
     plane: GroundPlane,
     earlier: NDArray[np.uint8],
@@ -305,23 +354,15 @@ def road_step(
             and all(np.linalg.norm(vector - s) > p.search_pct / 200.0 * np.linalg.norm(s) for s in starts)
         ):
             starts.append(vector)
-    # Only the rows below the road's highest pixel (less a tenth of the image, for the motion) are read.
     if len(plane.uv) < _min_pixels(p, camera):
         return None
-    uv = plane.uv.astype(np.float64)
-    top = max(0, int(uv[:, 1].min() - 0.1 * camera.height))
-    smooth_e = cv2.GaussianBlur(earlier[top:].astype(np.float32), (5, 5), 0.7)
-    smooth_l = cv2.GaussianBlur(later[top:].astype(np.float32), (5, 5), 0.7)
+    top, smooth_l, points, target = _road_images(plane, earlier, later, camera)
     grad_u = cv2.Sobel(smooth_l, cv2.CV_32F, 1, 0, ksize=3) / 8.0
     grad_v = cv2.Sobel(smooth_l, cv2.CV_32F, 0, 1, ksize=3) / 8.0
-    rays = _rays(camera, uv)
-    points = rays / (rays @ plane.m)[:, None]  # on the plane, earlier frame
-    target = _sample(smooth_e, uv[:, 0], uv[:, 1] - top)
     rotation = t_cur_ref[:3, :3]
 
     def project(rotated: F64, t: F64) -> tuple[F64, F64, F64]:
-        y = rotated + t
-        return camera.fx * y[:, 0] / y[:, 2] + camera.cx, camera.fy * y[:, 1] / y[:, 2] + camera.cy - top, y
+        return _project(camera, top, rotated + t)
 
     rotated_all = points @ rotation.T
 
@@ -335,8 +376,7 @@ def road_step(
     keep = np.ones(len(points), dtype=bool)
     for begin in starts:
         for factor in (1.0 - p.search_pct / 100.0, 1.0 + p.search_pct / 100.0):
-            u, v, y = project(rotated_all, factor * begin)
-            keep &= (y[:, 2] > 0.5) & (u >= 1) & (u <= camera.width - 2) & (v >= 1) & (v <= camera.height - top - 2)
+            keep &= _in_view(camera, top, *project(rotated_all, factor * begin))
     if keep.sum() < _min_pixels(p, camera):
         return None
     rotated, target = rotated_all[keep], target[keep]

@@ -626,13 +626,15 @@ def quality_paths(out: Path | str) -> tuple[Path, Path]:
 
 
 def write_quality(csv_path: Path | str, qualities: list[FrameQuality]) -> None:
-    """Write the per-frame quality as CSV (one row per frame, the fields of :class:`FrameQuality`)."""
+    """Write the per-frame quality as CSV (one row per frame, the fields of :class:`FrameQuality`; a
+    vector field, ``road_motion``, as its numbers separated by spaces, empty when there is none)."""
     names = list(asdict(qualities[0])) if qualities else list(FrameQuality.__dataclass_fields__)
     with Path(csv_path).open("w", newline="", encoding="utf-8") as handle:
         writer = csv.DictWriter(handle, fieldnames=names)
         writer.writeheader()
         for q in qualities:
-            writer.writerow(asdict(q))
+            row = asdict(q)
+            writer.writerow({k: " ".join(f"{x:.9g}" for x in v) if isinstance(v, tuple) else v for k, v in row.items()})
 
 
 def odometry_command(

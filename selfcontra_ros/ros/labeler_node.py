@@ -585,7 +585,8 @@ class LabelerNode(Node):
             True,
             _descriptor(
                 "pose_source odometry: measure each step a second time on the road ahead (the ground plane below "
-                "the camera); false for a camera that never sees one"
+                "the camera: its length, and where neighbouring frames' road steps agree its rotation and "
+                "direction too); false for a camera that never sees one"
             ),
         )
         self.declare_parameter(

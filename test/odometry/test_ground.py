@@ -9,7 +9,7 @@ from numpy.typing import NDArray
 
 from selfcontra_ros.datasets.synthetic import make_scene
 from selfcontra_ros.geometry import StereoCamera, invert_pose
-from selfcontra_ros.odometry.ground import GroundPlane, _rays, fit_ground, road_step
+from selfcontra_ros.odometry.ground import GroundPlane, _rays, fit_ground, road_costs, road_step
 
 WIDTH, HEIGHT, FRAMES = 640, 192, 6
 
@@ -121,3 +121,47 @@ def test_a_start_far_off_is_mended_by_the_wide_starts(street: tuple[StereoCamera
     assert alone is None or abs(alone.length_m / length - 1.0) > 0.5
     wide = road_step(plane, earlier, later, camera, short, other_starts=tuple(_WIDE_LENGTHS_M))
     assert wide is not None and abs(wide.length_m / length - 1.0) < 0.02, None if wide is None else wide.length_m
+
+
+def test_a_start_pointing_aside_is_mended_by_the_search_ahead(
+    street: tuple[StereoCamera, list, NDArray[np.float64]],
+) -> None:
+    """The features' step 80 % short and 10 degrees aside (measured on a vehicle): the wide starts along it
+    find nothing; the odometry's road search, which also searches straight ahead while the road has measured
+    nothing yet and keeps the result that aligns the common pixels better, finds the length within 2 %
+    (measured: 0.6 %)."""
+    from scipy.spatial.transform import Rotation
+
+    from selfcontra_ros.odometry.stereo_vo import _WIDE_LENGTHS_M, StereoOdometry
+
+    camera, frames, poses = street
+    earlier, later = _grey(frames[1].left), _grey(frames[2].left)
+    plane = fit_ground(earlier, _grey(frames[1].right), camera)
+    assert plane is not None
+    truth = invert_pose(poses[2]) @ poses[1]
+    length = float(np.linalg.norm(truth[:3, 3]))
+    aside = truth.copy()
+    aside[:3, 3] = Rotation.from_euler("y", 10.0, degrees=True).apply(truth[:3, 3]) * 0.2
+    along = road_step(plane, earlier, later, camera, aside, other_starts=tuple(_WIDE_LENGTHS_M))
+    assert along is None or abs(along.length_m / length - 1.0) > 0.05
+    found = StereoOdometry(camera)._road((1, earlier, plane), later, aside, invert_pose(aside))
+    assert abs(found["road_length_m"] / length - 1.0) < 0.02, found
+
+
+def test_road_costs_compare_motions_on_the_pixels_all_keep(
+    street: tuple[StereoCamera, list, NDArray[np.float64]],
+) -> None:
+    """The true step aligns the road better than one 5 % long; a motion that takes the road out of view
+    leaves too few common pixels, and every cost is inf."""
+    camera, frames, poses = street
+    earlier, later = _grey(frames[1].left), _grey(frames[2].left)
+    plane = fit_ground(earlier, _grey(frames[1].right), camera)
+    assert plane is not None
+    truth = invert_pose(poses[2]) @ poses[1]
+    long = truth.copy()
+    long[:3, 3] *= 1.05
+    costs = road_costs(plane, earlier, later, camera, [truth, long])
+    assert np.all(np.isfinite(costs)) and costs[0] < 0.9 * costs[1], costs
+    far = truth.copy()
+    far[:3, 3] = (0.0, 0.0, -30.0)
+    assert np.isinf(road_costs(plane, earlier, later, camera, [truth, far])).all()
