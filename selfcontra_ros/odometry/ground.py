@@ -149,6 +149,11 @@ def _cauchy_step(jac: F64, residual: F64, scale: float) -> F64 | None:
     return step
 
 
+def _cauchy_cost(residual: F64, scale: float) -> float:
+    """The mean Cauchy loss ``log(1 + (r / scale)^2)`` of the residuals: what the searches compare."""
+    return float(np.mean(np.log1p((residual / scale) ** 2)))
+
+
 def _min_pixels(params: GroundParams, camera: StereoCamera) -> int:
     return max(200, int(params.min_pixels * camera.width * camera.height / 1e6))
 
@@ -316,10 +321,8 @@ def road_costs(
         keep &= _in_view(camera, top, u, v, y)
     if keep.sum() < _min_pixels(p, camera):
         return np.full(len(motions), np.inf)
-    return np.array([
-        np.mean(np.log1p(((_sample(smooth_l, u[keep], v[keep]) - target[keep]) / p.cauchy_grey) ** 2))
-        for u, v, _ in projected
-    ])  # fmt: skip
+    return np.array([_cauchy_cost(_sample(smooth_l, u[keep], v[keep]) - target[keep], p.cauchy_grey)
+                     for u, v, _ in projected])  # fmt: skip
 
 
 def road_step(
@@ -368,8 +371,7 @@ def road_step(
 
     def cost(t: F64, rot: F64, target: F64) -> float:
         u, v, _ = project(rot, t)
-        r = _sample(smooth_l, u, v) - target
-        return float(np.mean(np.log1p((r / p.cauchy_grey) ** 2)))
+        return _cauchy_cost(_sample(smooth_l, u, v) - target, p.cauchy_grey)
 
     # Pixels that stay in view (and in front) over every search: the same set for every candidate, so that
     # their costs compare.

@@ -2465,10 +2465,13 @@ def smooth_step_lengths(poses: F64, qualities: list[FrameQuality], params: VOPar
     if not p.smooth_lengths or n < 2:
         return out
     steps = np.linalg.inv(out[:-1]) @ out[1:]
-    if p.road_motion:
-        steps = _road_motions(steps, qualities[1 : n + 1], p)
-    length = np.linalg.norm(steps[:, :3, 3], axis=1)
     value, measured, noise, gated = _length_measurements(qualities[1 : n + 1], p, p.length_floor_pct)
+    if p.road_motion:  # where the road's length is a measurement, the step is the road's
+        for j in np.flatnonzero(measured[:, 0]):
+            motion = qualities[j + 1].road_motion
+            if len(motion) == 6:
+                steps[j] = _pose_from_vector(np.asarray(motion, dtype=np.float64))
+    length = np.linalg.norm(steps[:, :3, 3], axis=1)
     if measured.any(axis=1).sum() >= 2:
         smoothed, _ = _rts_constant_velocity(value, measured, noise, p.length_acceleration_m, p.length_gate_sigmas,
                                              gated)  # fmt: skip
@@ -2477,18 +2480,6 @@ def smooth_step_lengths(poses: F64, qualities: list[FrameQuality], params: VOPar
         steps[moving, :3, 3] *= (np.maximum(smoothed[moving], 0.0) / length[moving])[:, None]
     for k in range(n):
         out[k + 1] = out[k] @ steps[k]
-    return out
-
-
-def _road_motions(steps: F64, qualities: list[FrameQuality], p: VOParams) -> F64:
-    """``steps`` (N, 4, 4; ``T_prev_cur`` of frames 1..N, whose ``qualities`` are given) with the road's
-    motion (``FrameQuality.road_motion``) wherever the road's length is used (:func:`_agreed_road_lengths`;
-    not ``static``)."""
-    out = steps.copy()
-    road = _agreed_road_lengths(qualities, p)
-    for k, q in enumerate(qualities):
-        if q.status != "static" and np.isfinite(road[k]) and len(q.road_motion) == 6:
-            out[k] = _pose_from_vector(np.asarray(q.road_motion, dtype=np.float64))
     return out
 
 
