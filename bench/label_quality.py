@@ -182,7 +182,13 @@ def _oracle_folders(row: dict[str, Any], work: Path) -> dict[str, Path]:
 
 
 def _confidence(
-    scene: str, rows: list[dict[str, Any]], work: Path, *, oracles: bool = False, forest_seeds: int = 1
+    scene: str,
+    rows: list[dict[str, Any]],
+    work: Path,
+    *,
+    oracles: bool = False,
+    forest_seeds: int = 1,
+    band_share: float | None = None,
 ) -> dict[str, Any]:
     """Ensemble forests trained on self labels / ground truth of the first half of the seeds, scored on the rest.
 
@@ -190,7 +196,8 @@ def _confidence(
     forest's ``random_state``; the sample draw stays the same) and the figures are means over them, with
     the self / ground-truth ratio per forest seed: one forest's AUSC moves by a few percent with its seed
     alone, which a label change must exceed to be seen. With ``oracles`` also on each :data:`ORACLES`
-    mending of the self labels (forest seed 0).
+    mending of the self labels (forest seed 0). ``band_share``: the self forests' ``train --band-negatives``
+    (None: the default); the ground-truth forest takes none.
     """
     from selfcontra_ros.confidence.commands import evaluate_command, train_command
 
@@ -205,7 +212,8 @@ def _confidence(
         suffix = "" if k == 0 else f"_f{k}"
         forest = None if k == 0 else {"random_state": k}  # seed 0 is the package's forest as it is
         self_model, gt_model = folder / f"self{suffix}.npz", folder / f"gt{suffix}.npz"
-        train_command([(r["data"], r["labels"]) for r in train], "ensemble", self_model, forest=forest)
+        band = {} if band_share is None else {"band_share": band_share}
+        train_command([(r["data"], r["labels"]) for r in train], "ensemble", self_model, forest=forest, **band)
         train_command([(r["data"], "gt") for r in train], "ensemble", gt_model, forest=forest)
         models += [self_model, gt_model]
     models.append("lrd")
@@ -213,7 +221,7 @@ def _confidence(
         mended = [_oracle_folders(r, work) for r in train]
         for name in ORACLES:
             model = folder / f"{name}.npz"
-            train_command([(r["data"], m[name]) for r, m in zip(train, mended, strict=True)], "ensemble", model)
+            train_command([(r["data"], m[name]) for r, m in zip(train, mended, strict=True)], "ensemble", model, **band)
             models.append(model)
     # Results are keyed by the model files' stems: "self", "gt" (and "self_f1", "gt_f1", ...), "lrd" and the
     # oracles' names.
@@ -292,6 +300,13 @@ def main(argv: list[str] | None = None) -> int:
         default=1,
         help="with --confidence: train both forests with this many forest seeds and report means (default 1)",
     )
+    parser.add_argument(
+        "--band-negatives",
+        type=float,
+        default=None,
+        metavar="SHARE",
+        help="with --confidence: the self forests' 'train --band-negatives' (default: train's default)",
+    )
     parser.add_argument("--threads", type=int, default=0)
     args = parser.parse_args(argv)
     limit_threads(args.threads)
@@ -339,7 +354,14 @@ def main(argv: list[str] | None = None) -> int:
         if args.confidence or args.oracles:
             for scene in tqdm(args.scenes, desc="confidence", unit="scene", file=sys.stderr):
                 mine = [r for r in rows if r["scene"] == scene]
-                result = _confidence(scene, mine, work, oracles=args.oracles, forest_seeds=args.forest_seeds)
+                result = _confidence(
+                    scene,
+                    mine,
+                    work,
+                    oracles=args.oracles,
+                    forest_seeds=args.forest_seeds,
+                    band_share=args.band_negatives,
+                )
                 scenes[scene]["confidence"] = result
                 if result:
                     print(

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from selfcontra_ros import interrupts
+from selfcontra_ros.confidence.constants import TRAINING
 from selfcontra_ros.datasets import SCENES
 from selfcontra_ros.errors import SelfContraError
 
@@ -275,6 +276,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         namespace=args.namespace,
         slop=args.slop,
         stereo_inputs=[_stereo_input(args, Path(d)) if is_bag(Path(d)) else None for d in args.data],
+        band_share=args.band_negatives,
     )
     print(
         f"trained {summary['feature_set']} forest on {summary['samples']} samples from {summary['frames']} frames "
@@ -336,6 +338,7 @@ def _cmd_batch_train(args: argparse.Namespace) -> int:
         cpus_per_task=args.cpus_per_task,
         matcher=MatcherParams(algorithm=args.algorithm) if args.algorithm else None,
         max_per_input=args.max_per_input,
+        band_share=args.band_negatives,
         n_jobs=cap_jobs(args.jobs),
     )
     print(
@@ -377,6 +380,14 @@ def _add_batch_parser(sub: Any) -> None:
         "--algorithm", choices=("sgbm", "bm", "census_sgm"), default=None, help="query algorithm if labels name none"
     )
     train.add_argument("--max-per-input", type=int, default=None, help="cap on one input's samples (default none)")
+    train.add_argument(
+        "--band-negatives",
+        type=float,
+        default=float(TRAINING["band_negatives"]),
+        metavar="SHARE",
+        help="the share of the unlabelled pixels of the query's fattening band drawn as negatives "
+        f"(default {float(TRAINING['band_negatives']):g}; 0 = the paper)",
+    )
     train.add_argument("--jobs", type=int, default=None, help="scikit-learn worker processes of the training")
     train.set_defaults(handler=_cmd_batch_train)
     for parser in (label, train):
@@ -536,6 +547,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="query algorithm for 'gt' labels (label folders bring their own; default sgbm)",
     )
     train.add_argument("--jobs", type=int, default=None, help="scikit-learn worker processes (default 1)")
+    train.add_argument(
+        "--band-negatives",
+        type=float,
+        default=float(TRAINING["band_negatives"]),
+        metavar="SHARE",
+        help="self labels only: the share of the unlabelled pixels of the query's fattening band drawn as "
+        f"negatives (default {float(TRAINING['band_negatives']):g}; 0 = the paper: unknown pixels are ignored)",
+    )
     _add_bag_data_options(train, "every --data bag")
     train.set_defaults(handler=_cmd_train)
 

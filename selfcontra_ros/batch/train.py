@@ -58,6 +58,7 @@ def sample_one(
     max_per_class: int,
     max_per_input: int | None,
     threads: int | None,
+    band_share: float = float(constants.TRAINING["band_negatives"]),
 ) -> dict[str, Any]:
     """The samples of one ``(data, labels)`` pair as plain arrays; the body of one batch-train task.
 
@@ -76,6 +77,7 @@ def sample_one(
             input_rng(seed, position),
             max_per_class=max_per_class,
             max_per_input=max_per_input,
+            band_share=band_share,
         )
     except Exception as exc:  # reported with its input by the driver
         return {"error": f"{type(exc).__name__}: {exc}"}
@@ -101,6 +103,7 @@ def batch_train(
     max_per_class: int = int(constants.TRAINING["max_per_class"]),
     max_per_input: int | None = None,
     seed: int = int(constants.TRAINING["seed"]),
+    band_share: float = float(constants.TRAINING["band_negatives"]),
     n_jobs: int | None = None,
     forest: Mapping[str, Any] | None = None,
     progress: bool = True,
@@ -119,6 +122,8 @@ def batch_train(
         max_per_class: per-image cap on samples of each class.
         max_per_input: cap on one input's samples (None: no cap beyond the per-image one).
         seed: seed of the draws.
+        band_share: the share of the unknown pixels of the query's fattening band drawn as negatives
+            (:func:`~selfcontra_ros.confidence.training.band_negatives`; 0 = the paper).
         n_jobs: scikit-learn workers of the final training.
         forest: overrides of the forest constants.
         progress: a progress bar over the finished inputs.
@@ -150,7 +155,7 @@ def batch_train(
         engine = open_engine(address, cpus_per_task=cpus_per_task, inputs=len(pairs), echo=echo)
     threads = cpus_per_task if engine.remote else None
     calls = [
-        (position, d, lab, features, asdict(params), seed, max_per_class, max_per_input, threads)
+        (position, d, lab, features, asdict(params), seed, max_per_class, max_per_input, threads, band_share)
         for position, (d, lab) in enumerate(pairs)
     ]
     results: dict[int, dict[str, Any]] = {}

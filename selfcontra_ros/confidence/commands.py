@@ -63,6 +63,7 @@ from selfcontra_ros.confidence.training import (
     Samples,
     TrainParams,
     balanced_indices,
+    band_negatives,
     frame_samples,
     merge_samples,
     train,
@@ -167,6 +168,11 @@ class _LabelSource:
             return (self.folder / f"{frame.index:06d}.png").is_file()
         return True
 
+    @property
+    def is_ground_truth(self) -> bool:
+        """Whether the labels are the data's ground truth (``gt``) rather than self labels."""
+        return self.folder is None and self.bag is None
+
     def labels(self, frame: StereoFrame, disparity: NDArray[np.float32]) -> NDArray[np.uint8] | None:
         if self.bag is not None:
             return self.bag.at(frame.stamp_ns) if isinstance(frame, BagFrame) else None
@@ -267,6 +273,7 @@ def input_samples(
     namespace: str | None = None,
     stereo_input: StereoInput | None = None,
     slop: float | None = None,
+    band_share: float = float(constants.TRAINING["band_negatives"]),
 ) -> InputSamples:
     """Balanced samples of one ``(data, labels)`` pair with query algorithm ``params`` (see :func:`collect_samples`).
 
@@ -279,6 +286,8 @@ def input_samples(
         max_per_input: cap on the pair's samples of each feature set (both classes together); an
             input above it keeps a balanced draw of ``max_per_input // 2`` per class. None: no cap.
         namespace, stereo_input, slop: how a data bag is read (:func:`iter_frames`).
+        band_share: self labels only (not ``gt``): the share of the unknown pixels of the query's fattening
+            band drawn as negatives (:func:`~selfcontra_ros.confidence.training.band_negatives`; 0 = the paper).
 
     Raises:
         SelfContraError: labels of a bag that match no frame of its data (or with data that is not a bag).
@@ -298,6 +307,8 @@ def input_samples(
         label_image = source.labels(frame, inputs.disparity)
         if label_image is None:
             continue
+        if not source.is_ground_truth:
+            label_image = band_negatives(label_image, inputs.disparity, band_share, rng)
         labelled += 1
         ctx = FeatureContext(inputs)
         for name in feature_sets:
@@ -360,12 +371,14 @@ def collect_samples(
     stereo_inputs: Sequence[StereoInput | None] | None = None,
     slop: float | None = None,
     max_per_input: int | None = None,
+    band_share: float = float(constants.TRAINING["band_negatives"]),
 ) -> tuple[dict[str, Samples], MatcherParams]:
     """Balanced training samples of several feature sets from ``(data, labels)`` pairs; matching runs once per frame.
 
     ``namespace``, ``stereo_inputs`` (one per pair, None for a bag's own record) and ``slop``
     say how data bags are read (:func:`iter_frames`). Pair ``i`` draws its samples with
-    :func:`input_rng` ``(seed, i)`` (:func:`input_samples`); ``max_per_input`` caps each pair's samples.
+    :func:`input_rng` ``(seed, i)`` (:func:`input_samples`); ``max_per_input`` caps each pair's samples;
+    ``band_share`` as in :func:`input_samples`.
 
     Returns:
         ``({feature set: samples}, query algorithm parameters)``.
@@ -393,6 +406,7 @@ def collect_samples(
             namespace=namespace,
             stereo_input=stereo_input,
             slop=slop,
+            band_share=band_share,
         )
         for position, ((data, labels), stereo_input) in enumerate(zip(pairs, bag_inputs, strict=True))
     ]
@@ -411,6 +425,7 @@ def train_command(
     namespace: str | None = None,
     stereo_inputs: Sequence[StereoInput | None] | None = None,
     slop: float | None = None,
+    band_share: float = float(constants.TRAINING["band_negatives"]),
 ) -> dict[str, Any]:
     """Train a confidence forest of feature set ``features`` and write it to ``out`` (``.npz``).
 
@@ -429,6 +444,8 @@ def train_command(
         stereo_inputs: how each data bag is read, one per pair (None: its own record, else the
             package's layout): a robot's topic names, compressed images, rectification.
         slop: data bags' left and right images paired within this many seconds; None: as recorded.
+        band_share: self labels only: the share of the unknown pixels of the query's fattening band drawn as
+            negatives (:func:`~selfcontra_ros.confidence.training.band_negatives`; 0 = the paper).
 
     Returns:
         Summary: ``model`` path, ``samples``, ``frames``, ``positive_share``, ``seconds``.
@@ -444,6 +461,7 @@ def train_command(
         namespace=namespace,
         stereo_inputs=stereo_inputs,
         slop=slop,
+        band_share=band_share,
     )
     return train_and_save(samples[features], params, pairs, out, n_jobs=n_jobs, forest=forest, started=start)
 

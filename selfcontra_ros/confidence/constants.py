@@ -140,5 +140,7 @@ FOREST = MappingProxyType(
     {"n_estimators": 20, "max_depth": 20, "min_samples_leaf": 100, "criterion": "entropy", "random_state": 0}
 )
 
-#: Training-set sampling: at most this many positives (and as many negatives) per image; ``seed`` of the draw.
-TRAINING = MappingProxyType({"max_per_class": 10000, "seed": 0})
+#: Training-set sampling: at most this many positives (and as many negatives) per image; ``seed`` of the draw;
+#: ``band_negatives``: the share of the unlabelled pixels of the query's fattening band that self labels give
+#: the draw as negatives (:func:`~selfcontra_ros.confidence.training.band_negatives`; 0 = the paper).
+TRAINING = MappingProxyType({"max_per_class": 10000, "seed": 0, "band_negatives": 1.0})

@@ -73,7 +73,7 @@ from selfcontra_ros.confidence.features import (
 )
 from selfcontra_ros.confidence.forest import ForestModel, ModelError, load_model, save_model
 from selfcontra_ros.confidence.inputs import census_costs
-from selfcontra_ros.confidence.training import balanced_indices
+from selfcontra_ros.confidence.training import balanced_indices, band_negatives
 from selfcontra_ros.errors import SelfContraError
 from selfcontra_ros.labels import NEGATIVE, POSITIVE
 from selfcontra_ros.matching.base import MatcherParams, to_grey
@@ -116,6 +116,9 @@ class ConfidenceParams:
         retrain_every: retrain after this many labelled views (each view that gave samples counts).
         reservoir_per_class: capacity of each class's reservoir, samples.
         samples_per_view: at most this many samples of each class from one labelled view.
+        band_negatives: the share of a labelled view's unlabelled pixels in the query's fattening band drawn
+            as negatives (:func:`~selfcontra_ros.confidence.training.band_negatives`, as ``selfcontra
+            train --band-negatives``; 0 = the paper).
         n_estimators: trees of the online forest.
         max_depth: depth limit of each tree.
         min_samples_leaf: smallest leaf, samples.
@@ -130,6 +133,7 @@ class ConfidenceParams:
     retrain_every: int = 10
     reservoir_per_class: int = 20000
     samples_per_view: int = 2000
+    band_negatives: float = float(constants.TRAINING["band_negatives"])
     n_estimators: int = 10
     max_depth: int = 12
     min_samples_leaf: int = 20
@@ -154,6 +158,8 @@ class ConfidenceParams:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise SelfContraError(f"ConfidenceParams.{name} must be an integer >= 1, got {value!r}")
+        if not 0.0 <= self.band_negatives <= 1.0:
+            raise SelfContraError(f"ConfidenceParams.band_negatives must be in [0, 1], got {self.band_negatives}")
         if isinstance(self.max_depth, bool) or not isinstance(self.max_depth, int) or self.max_depth < 1:
             raise SelfContraError(f"ConfidenceParams.max_depth must be an integer >= 1, got {self.max_depth!r}")
 
@@ -462,6 +468,7 @@ class OnlineConfidence:
             raise SelfContraError(
                 f"label image {labels.shape} does not match the disparity map {frame.disparity.shape}"
             )
+        labels = band_negatives(labels, frame.disparity, self.params.band_negatives, self._draw_rng)
         # The cheap context first: a view without both classes costs no census volume.
         at_valid = labels[frame.context(with_costs=False).valid]
         chosen = balanced_indices(at_valid, self.params.samples_per_view, self._draw_rng)

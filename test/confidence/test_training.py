@@ -1,0 +1,98 @@
+"""Training-sample helpers: the fattening band's unlabelled pixels as negatives (``band_negatives``)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from selfcontra_ros.confidence.commands import _label_source, iter_frames, train_command
+from selfcontra_ros.confidence.features import FeatureContext
+from selfcontra_ros.confidence.inputs import query_feature_input
+from selfcontra_ros.confidence.training import band_negatives
+from selfcontra_ros.datasets.synthetic import write_sequence
+from selfcontra_ros.errors import SelfContraError
+from selfcontra_ros.labeler import LabelerParams
+from selfcontra_ros.labels import NEGATIVE, POSITIVE, UNKNOWN
+from selfcontra_ros.matching.base import MatcherParams, make_matcher
+from selfcontra_ros.stages.voting import fattening_band
+
+SMALL_FOREST = {"n_estimators": 3, "max_depth": 8, "min_samples_leaf": 5}
+MATCHER = MatcherParams(num_disparities=32)
+
+
+def _step(width: int = 200, height: int = 40, edge: int = 80) -> np.ndarray:
+    """Background at 10 px left of ``edge``, an object at 30 px right of it, an invalid strip at the far right."""
+    d = np.full((height, width), 10.0, np.float32)
+    d[:, edge:] = 30.0
+    d[:, width - 10 :] = np.nan
+    return d
+
+
+def test_band_negatives_fill_only_the_unknown_pixels_of_the_labelers_band() -> None:
+    d = _step()
+    p = LabelerParams()
+    band = fattening_band(
+        d,
+        jump_px=p.stage2_edge_jump_px,
+        occluded_side_px=p.stage2_edge_occluded_side_px,
+        other_px=p.stage2_edge_other_px,
+    )
+    # The band is the object's side of the edge, as far from it as the band's left reach.
+    assert band[:, 80 : 80 + p.stage2_edge_occluded_side_px].all()
+    assert not band[:, :80].any() and not band[:, 80 + p.stage2_edge_occluded_side_px + 1 :].any()
+    labels = np.full(d.shape, UNKNOWN, np.uint8)
+    labels[5, 85] = POSITIVE  # the labeler never does this in its band, but a label is never overwritten
+    labels[6, 40] = NEGATIVE
+    labels[7, 150] = POSITIVE
+    out = band_negatives(labels, d, 1.0, np.random.default_rng(0))
+    assert out.dtype == np.uint8 and out.shape == labels.shape
+    assert out[5, 85] == POSITIVE and out[6, 40] == NEGATIVE and out[7, 150] == POSITIVE
+    assert np.array_equal(out == NEGATIVE, band & (labels == UNKNOWN) | (labels == NEGATIVE))
+    assert not (out[:, -10:] != UNKNOWN).any()  # invalid disparity is never drawn
+    assert np.array_equal(band_negatives(labels, d, 0.0, np.random.default_rng(0)), labels)  # 0: the paper
+
+
+def test_band_negatives_share_draws_that_share() -> None:
+    d = _step(width=400, height=200, edge=150)
+    labels = np.zeros(d.shape, np.uint8)
+    band_pixels = 200 * LabelerParams().stage2_edge_occluded_side_px
+    drawn = [int((band_negatives(labels, d, 0.3, np.random.default_rng(seed)) == NEGATIVE).sum()) for seed in range(3)]
+    # Binomial(4000, 0.3): mean 1200, std 29; 6 std either side.
+    assert all(abs(n - 0.3 * band_pixels) < 6 * np.sqrt(band_pixels * 0.3 * 0.7) for n in drawn)
+    with pytest.raises(SelfContraError, match="does not match"):
+        band_negatives(labels[:, :-1], d, 1.0, np.random.default_rng(0))
+
+
+@pytest.fixture(scope="module")
+def labelled(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """A small street sequence and a label folder holding only its ground truth's positives."""
+    root = tmp_path_factory.mktemp("band")
+    data = root / "seq"
+    write_sequence(data, scene="street", frames=2, seed=3, width=240, height=96)
+    out = root / "labels_run"
+    (out / "labels").mkdir(parents=True)
+    matcher = make_matcher(MATCHER)
+    for frame in iter_frames(data):
+        ctx = FeatureContext(query_feature_input(matcher, frame.left, frame.right))
+        assert frame.gt_disparity is not None
+        d = ctx.data.disparity
+        good = np.isfinite(d) & (np.abs(d - frame.gt_disparity) < 1)
+        cv2.imwrite(str(out / "labels" / f"{frame.index:06d}.png"), np.where(good, POSITIVE, UNKNOWN).astype(np.uint8))
+    (out / "metrics.json").write_text(json.dumps({"params": {"matcher": asdict(MATCHER)}}))
+    return data, out
+
+
+def test_train_draws_band_negatives_from_self_labels_only(labelled: tuple[Path, Path], tmp_path: Path) -> None:
+    data, labels = labelled
+    # Positives only: without band negatives no image has both classes, so there is nothing to learn.
+    with pytest.raises(SelfContraError):
+        train_command([(data, labels)], "gcp", tmp_path / "paper.npz", forest=SMALL_FOREST, band_share=0.0)
+    summary = train_command([(data, labels)], "gcp", tmp_path / "band.npz", forest=SMALL_FOREST)
+    assert summary["samples"] > 0 and summary["positive_share"] == pytest.approx(0.5)
+    # Ground truth is used as it is (sparse ground truth leaves valid pixels unknown; they must stay out).
+    assert _label_source("gt", data).is_ground_truth and not _label_source(labels, data).is_ground_truth
