@@ -41,7 +41,9 @@ on the synthetic scenes these were most of the wrong positives. Pixels of
 the band stay open to negative votes and to Stage 3. The same band of each
 *reference* (``free_space_band``, on in the labeler) keeps that reference's
 fattened points out of the free-space z-buffer, where they would vote against
-the correct background they float in front of.
+the correct background they float in front of. In the band a negative may
+also ask for more than one view voting against it (``band_min_negative_views``;
+the labeler's default 2, this function's 1 is the paper).
 """
 
 from __future__ import annotations
@@ -326,6 +328,7 @@ def consistency_voting(
     free_space_min_views: int = 1,
     positive_accuracy_ratio: float = 1.0,
     occlusion_votes: str = "everywhere",
+    band_min_negative_views: int = 1,
 ) -> VotingResult:
     """Stage 2 for one query view against the reference views ``refs``.
 
@@ -372,6 +375,9 @@ def consistency_voting(
         occlusion_votes: where a lookup's occlusion (``X_q`` in front of the reference's measured surface)
             votes negative, one of :data:`OCCLUSION_VOTES`: ``everywhere`` (paper) or ``band`` (only in the
             query's fattening band of ``edge_jump_px``).
+        band_min_negative_views: in the query's own fattening band (of ``edge_jump_px``), a negative sum
+            labels a pixel negative only where at least this many reference views cast a negative vote
+            (occlusion or free-space) on it; otherwise it stays unknown. 1 = the paper (any negative sum).
     """
     n = query.valid.size
     mode = tolerance_code(tolerance)
@@ -381,6 +387,8 @@ def consistency_voting(
         raise ValueError(f"negative_voters must be one of {NEGATIVE_VOTERS}, got {negative_voters!r}")
     if occlusion_votes not in OCCLUSION_VOTES:
         raise ValueError(f"occlusion_votes must be one of {OCCLUSION_VOTES}, got {occlusion_votes!r}")
+    if band_min_negative_views < 1:
+        raise ValueError(f"band_min_negative_views must be >= 1, got {band_min_negative_views}")
     # The query's own fattening band (none without edge_jump_px), which several rules below read.
     query_band = (
         view_band(query, camera, edge_jump_px, edge_occluded_side_px, edge_other_px)
@@ -402,6 +410,13 @@ def consistency_voting(
     fs_sum = np.zeros(n) if counted else None
     fs_voted = np.zeros(n, dtype=bool) if counted else None
     fs_views = np.zeros(n, dtype=np.int32)
+    # Per pixel, how many references voted negative (only where the band asks for more than one): each reference's
+    # votes go to arrays of their own first (a reference casts at most one vote per pixel, so adding them to the
+    # sums afterwards gives the very same sums).
+    counting = band_min_negative_views > 1 and edge_jump_px > 0
+    negative_views = np.zeros(n, dtype=np.int32) if counting else None
+    ref_sum = np.zeros(n) if counting else full_sum
+    ref_voted = np.zeros(n, dtype=bool) if counting else full_voted
     # One reference after the other, as the paper sums votes: the sums do not depend on how pixels are split
     # between threads.
     for ref in refs:
@@ -415,8 +430,8 @@ def consistency_voting(
             band = view_band(ref, camera, edge_jump_px, edge_occluded_side_px, edge_other_px)
             splat_bits = np.where(band, np.uint64(0), gated.support_bits)
         _reference_votes(
-            full_sum,
-            full_voted,
+            ref_sum,
+            ref_voted,
             query,
             gated,
             camera,
@@ -435,7 +450,15 @@ def consistency_voting(
             free_space_voted=fs_voted,
             positive_accuracy_ratio=positive_accuracy_ratio,
         )
+        if negative_views is not None:
+            negative_views += ref_sum < 0
+            full_sum += ref_sum
+            full_voted |= ref_voted
+            ref_sum.fill(0.0)
+            ref_voted.fill(False)
         if fs_voted is not None:
+            if negative_views is not None:
+                negative_views += fs_voted  # a free-space vote is always negative
             fs_views += fs_voted
             fs_voted.fill(False)
     if fs_sum is not None:
@@ -453,5 +476,8 @@ def consistency_voting(
     if hole_margin_px > 0:
         positive &= ~hole_margin(query.disparity.reshape(camera.height, camera.width), hole_margin_px).ravel()
     labels[positive] = POSITIVE
-    labels[full_voted & (full_sum < 0)] = NEGATIVE
+    negative = full_voted & (full_sum < 0)
+    if negative_views is not None:
+        negative &= ~query_band | (negative_views >= band_min_negative_views)
+    labels[negative] = NEGATIVE
     return VotingResult(vote_sum=full_sum, voted=full_voted, labels=labels)

@@ -221,6 +221,8 @@ OPTIONS = [
     pytest.param({"band_px": 4.0, "voters": "band", "min_views": 2}, id="free-space-min-views"),
     pytest.param({"min_views": 2}, id="free-space-min-views-no-band"),
     pytest.param({"band_px": 4.0, "voters": "any", "occlusion": "band"}, id="occlusion-votes-in-band"),
+    pytest.param({"band_px": 4.0, "voters": "band", "band_views": 2}, id="band-min-negative-views"),
+    pytest.param({"band_px": 4.0, "voters": "band", "min_views": 2, "band_views": 3}, id="band-views-and-min-views"),
     pytest.param({"radius": 0, "positive_sigma": 2.0, "negative_sigma": 2.0}, id="paper"),
 ]
 
@@ -239,7 +241,9 @@ def test_consistency_voting_matches_slow_reference(options: dict) -> None:
         "band_px": 0.0,
         "min_views": 1,
         "occlusion": "everywhere",
+        "band_views": 1,
     } | options
+    band_views = o.pop("band_views")
     voters = o.pop("voters")
     min_views = o.pop("min_views")
     occlusion = o.pop("occlusion")
@@ -256,6 +260,7 @@ def test_consistency_voting_matches_slow_reference(options: dict) -> None:
     doubtful = np.zeros(query.valid.size, dtype=bool)
     free_space_sum = np.zeros(query.valid.size)
     free_space_views = np.zeros(query.valid.size, dtype=int)
+    negative_views = np.zeros(query.valid.size, dtype=int)  # references voting negative, lookup or free space
     for ref in refs:  # in window order, as the votes are summed
         votes, ties = _slow_votes(query, ref, **o, negatives_from_any=from_any, occlusion_votes=occluding)
         # A pixel's free-space vote is what the splat adds where the lookup left it undecided.
@@ -265,6 +270,7 @@ def test_consistency_voting_matches_slow_reference(options: dict) -> None:
             silenced += int((_slow_votes(query, ref, **lookup_only, negatives_from_any=from_any)[0] != lookup).sum())
         free_space_sum += votes - lookup
         free_space_views += votes != lookup
+        negative_views += votes < 0
         expected_sum += lookup
         expected_voted |= lookup != 0
         doubtful |= ties
@@ -295,6 +301,7 @@ def test_consistency_voting_matches_slow_reference(options: dict) -> None:
         free_space_band=o["band_px"] > 0,
         free_space_min_views=min_views,
         occlusion_votes=occlusion,
+        band_min_negative_views=band_views,
     )
     if occlusion == "band":  # the case must leave some occlusion votes out
         assert silenced > 5
@@ -305,6 +312,10 @@ def test_consistency_voting_matches_slow_reference(options: dict) -> None:
     expected_labels = np.where(expected_sum > 0, POSITIVE, np.where(expected_sum < 0, NEGATIVE, UNKNOWN))
     if o["band_px"] > 0:  # the query's own band is never positive (edge_jump_px)
         expected_labels[(expected_labels == POSITIVE) & _band(query, o["band_px"])] = UNKNOWN
+    if band_views > 1:  # ... and negative in it only where enough references voted against it
+        held_back = (expected_labels == NEGATIVE) & _band(query, o["band_px"]) & (negative_views < band_views)
+        assert held_back.sum() > 5 and ((expected_labels == NEGATIVE) & ~held_back).sum() > 5
+        expected_labels[held_back] = UNKNOWN
     np.testing.assert_array_equal(result.labels[clear], np.where(expected_voted, expected_labels, UNKNOWN)[clear])
     # The scene must exercise both signs, or the comparison proves little.
     assert (expected_sum > 0).sum() > 50 and (expected_sum < 0).sum() > 10
