@@ -348,6 +348,18 @@ def _cmd_batch_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_band_negatives(parser: argparse.ArgumentParser) -> None:
+    """``--band-negatives`` of ``train`` and ``batch train``."""
+    parser.add_argument(
+        "--band-negatives",
+        type=float,
+        default=float(TRAINING["band_negatives"]),
+        metavar="SHARE",
+        help="self labels only: the share of the unlabelled pixels of the query's fattening band drawn as "
+        f"negatives (default {float(TRAINING['band_negatives']):g}; 0 = the paper: unknown pixels are ignored)",
+    )
+
+
 def _add_batch_parser(sub: Any) -> None:
     """``selfcontra batch label`` / ``batch train`` (:mod:`selfcontra_ros.batch`)."""
     batch = sub.add_parser(
@@ -380,14 +392,7 @@ def _add_batch_parser(sub: Any) -> None:
         "--algorithm", choices=("sgbm", "bm", "census_sgm"), default=None, help="query algorithm if labels name none"
     )
     train.add_argument("--max-per-input", type=int, default=None, help="cap on one input's samples (default none)")
-    train.add_argument(
-        "--band-negatives",
-        type=float,
-        default=float(TRAINING["band_negatives"]),
-        metavar="SHARE",
-        help="the share of the unlabelled pixels of the query's fattening band drawn as negatives "
-        f"(default {float(TRAINING['band_negatives']):g}; 0 = the paper)",
-    )
+    _add_band_negatives(train)
     train.add_argument("--jobs", type=int, default=None, help="scikit-learn worker processes of the training")
     train.set_defaults(handler=_cmd_batch_train)
     for parser in (label, train):
@@ -547,14 +552,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="query algorithm for 'gt' labels (label folders bring their own; default sgbm)",
     )
     train.add_argument("--jobs", type=int, default=None, help="scikit-learn worker processes (default 1)")
-    train.add_argument(
-        "--band-negatives",
-        type=float,
-        default=float(TRAINING["band_negatives"]),
-        metavar="SHARE",
-        help="self labels only: the share of the unlabelled pixels of the query's fattening band drawn as "
-        f"negatives (default {float(TRAINING['band_negatives']):g}; 0 = the paper: unknown pixels are ignored)",
-    )
+    _add_band_negatives(train)
     _add_bag_data_options(train, "every --data bag")
     train.set_defaults(handler=_cmd_train)
 

@@ -10,8 +10,10 @@ import cv2
 import numpy as np
 import pytest
 
+from selfcontra_ros.cli import main
 from selfcontra_ros.confidence.commands import _label_source, iter_frames, train_command
 from selfcontra_ros.confidence.features import FeatureContext
+from selfcontra_ros.confidence.forest import load_model
 from selfcontra_ros.confidence.inputs import query_feature_input
 from selfcontra_ros.confidence.training import band_negatives
 from selfcontra_ros.datasets.synthetic import write_sequence
@@ -96,3 +98,11 @@ def test_train_draws_band_negatives_from_self_labels_only(labelled: tuple[Path, 
     assert summary["samples"] > 0 and summary["positive_share"] == pytest.approx(0.5)
     # Ground truth is used as it is (sparse ground truth leaves valid pixels unknown; they must stay out).
     assert _label_source("gt", data).is_ground_truth and not _label_source(labels, data).is_ground_truth
+
+
+def test_train_command_line_takes_the_share(labelled: tuple[Path, Path], tmp_path: Path) -> None:
+    data, labels = labelled
+    base = ["train", "--features", "gcp", "--data", str(data), "--labels", str(labels)]
+    assert main([*base, "--out", str(tmp_path / "paper.npz"), "--band-negatives", "0"]) == 2  # one class only
+    assert main([*base, "--out", str(tmp_path / "band.npz")]) == 0
+    assert load_model(tmp_path / "band.npz").metadata["feature_set"] == "gcp"
