@@ -55,6 +55,7 @@ from tqdm import tqdm
 
 from selfcontra_ros.batch.label import COMPLETE
 from selfcontra_ros.cli import parse_seeds, parse_size
+from selfcontra_ros.confidence.constants import TRAINING
 from selfcontra_ros.datasets import SCENES
 from selfcontra_ros.datasets.synthetic import write_sequence
 from selfcontra_ros.labels import NEGATIVE, POSITIVE, UNKNOWN
@@ -188,7 +189,7 @@ def _confidence(
     *,
     oracles: bool = False,
     forest_seeds: int = 1,
-    band_share: float | None = None,
+    band_share: float = float(TRAINING["band_negatives"]),
 ) -> dict[str, Any]:
     """Ensemble forests trained on self labels / ground truth of the first half of the seeds, scored on the rest.
 
@@ -196,8 +197,8 @@ def _confidence(
     forest's ``random_state``; the sample draw stays the same) and the figures are means over them, with
     the self / ground-truth ratio per forest seed: one forest's AUSC moves by a few percent with its seed
     alone, which a label change must exceed to be seen. With ``oracles`` also on each :data:`ORACLES`
-    mending of the self labels (forest seed 0). ``band_share``: the self forests' ``train --band-negatives``
-    (None: the default); the ground-truth forest takes none.
+    mending of the self labels (forest seed 0). ``band_share``: the self forests' ``train --band-negatives``;
+    the ground-truth forest takes none.
     """
     from selfcontra_ros.confidence.commands import evaluate_command, train_command
 
@@ -212,8 +213,9 @@ def _confidence(
         suffix = "" if k == 0 else f"_f{k}"
         forest = None if k == 0 else {"random_state": k}  # seed 0 is the package's forest as it is
         self_model, gt_model = folder / f"self{suffix}.npz", folder / f"gt{suffix}.npz"
-        band = {} if band_share is None else {"band_share": band_share}
-        train_command([(r["data"], r["labels"]) for r in train], "ensemble", self_model, forest=forest, **band)
+        train_command(
+            [(r["data"], r["labels"]) for r in train], "ensemble", self_model, forest=forest, band_share=band_share
+        )
         train_command([(r["data"], "gt") for r in train], "ensemble", gt_model, forest=forest)
         models += [self_model, gt_model]
     models.append("lrd")
@@ -221,7 +223,8 @@ def _confidence(
         mended = [_oracle_folders(r, work) for r in train]
         for name in ORACLES:
             model = folder / f"{name}.npz"
-            train_command([(r["data"], m[name]) for r, m in zip(train, mended, strict=True)], "ensemble", model, **band)
+            pairs = [(r["data"], m[name]) for r, m in zip(train, mended, strict=True)]
+            train_command(pairs, "ensemble", model, band_share=band_share)
             models.append(model)
     # Results are keyed by the model files' stems: "self", "gt" (and "self_f1", "gt_f1", ...), "lrd" and the
     # oracles' names.
@@ -303,7 +306,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--band-negatives",
         type=float,
-        default=None,
+        default=float(TRAINING["band_negatives"]),
         metavar="SHARE",
         help="with --confidence: the self forests' 'train --band-negatives' (default: train's default)",
     )

@@ -463,11 +463,7 @@ class OnlineConfidence:
                     self._idle.set()
 
     def _learn(self, frame: ConfidenceFrame, labels: NDArray[np.uint8]) -> None:
-        labels = np.asarray(labels)
-        if labels.shape != frame.disparity.shape:
-            raise SelfContraError(
-                f"label image {labels.shape} does not match the disparity map {frame.disparity.shape}"
-            )
+        # Also checks that the label image has the disparity map's shape.
         labels = band_negatives(labels, frame.disparity, self.params.band_negatives, self._draw_rng)
         # The cheap context first: a view without both classes costs no census volume.
         at_valid = labels[frame.context(with_costs=False).valid]

@@ -25,7 +25,9 @@ from selfcontra_ros.confidence import constants
 from selfcontra_ros.confidence.features import FeatureContext, compute_features, feature_names
 from selfcontra_ros.confidence.forest import ForestModel, fit_forest
 from selfcontra_ros.errors import SelfContraError
+from selfcontra_ros.labeler import LabelerParams
 from selfcontra_ros.labels import NEGATIVE, POSITIVE, UNKNOWN
+from selfcontra_ros.stages.voting import fattening_band
 
 __all__ = ["Samples", "TrainParams", "balanced_indices", "band_negatives", "frame_samples", "merge_samples", "train"]
 
@@ -112,9 +114,6 @@ def band_negatives(
         raise SelfContraError(f"label image {labels.shape} does not match the disparity map {np.shape(disparity)}")
     if share <= 0:
         return labels
-    from selfcontra_ros.labeler import LabelerParams
-    from selfcontra_ros.stages.voting import fattening_band
-
     p = LabelerParams()
     band = fattening_band(
         np.asarray(disparity, dtype=np.float32),
