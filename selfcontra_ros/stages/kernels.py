@@ -1262,6 +1262,8 @@ def lookup_votes_kernel(
     negatives_from_any: np.ndarray,
     positive_accuracy_ratio: float,
     occlusion_votes: np.ndarray,
+    fallback_views: np.ndarray,
+    fallback_accuracy_ratio: float,
 ) -> None:
     """Stage 2, lookup: add one reference view's positive or occlusion vote to each valid query pixel, in place.
 
@@ -1280,6 +1282,11 @@ def lookup_votes_kernel(
     reference's vote; ``pending[i]`` is set where nothing decided it (the splat's
     turn, :func:`free_space_votes_kernel`). An occlusion casts its vote only where ``occlusion_votes[i]`` (a
     bool per query pixel); elsewhere it still decides the reference's vote, as no vote.
+
+    A measurement that may not vote positive but is less accurate by under ``fallback_accuracy_ratio``
+    (``u_r < fallback_accuracy_ratio * u_q``) and agrees within ``positive_sq`` (and the angle) adds one to
+    ``fallback_views[i]`` instead (int32 per query pixel): it casts no vote and decides nothing, so the votes
+    are those of a ratio of 1.
 
     ``vote_sum[i] += vote`` and ``voted[i] |= vote != 0``: called once per
     reference in window order, the sums are those of adding whole vote arrays
@@ -1300,7 +1307,8 @@ def lookup_votes_kernel(
             u_r = np.float64(r_u[j])
             may_negative = u_r < u_q or negatives_from_any[i]
             may_positive = u_r < positive_accuracy_ratio * u_q
-            if may_negative or may_positive:
+            may_fallback = not may_positive and u_r < fallback_accuracy_ratio * u_q
+            if may_negative or may_positive or may_fallback:
                 xr, yr, zr = np.float64(r_points[j, 0]), np.float64(r_points[j, 1]), np.float64(r_points[j, 2])
                 xrq, yrq, zrq = transform_scalar(query_from_ref, xr, yr, zr)
                 m2 = tolerance_sq_capped_scalar(
@@ -1326,7 +1334,7 @@ def lookup_votes_kernel(
                 far = m2 > negative_sq
                 in_front = math.sqrt(x * x + y * y + z * z) < math.sqrt(xr * xr + yr * yr + zr * zr)
                 weight = np.float64(support_count_scalar(r_bits[j])) / math.sqrt(u_r)
-                if m2 <= positive_sq and may_positive:
+                if m2 <= positive_sq and (may_positive or may_fallback):
                     # A reference seen from nearly the query's direction repeats the query's systematic error
                     # (same image patches, same ambiguity): its agreement decides its vote but does not count.
                     if min_angle_deg <= 0 or (
@@ -1335,7 +1343,10 @@ def lookup_votes_kernel(
                         )
                         > min_angle_deg
                     ):
-                        vote = weight
+                        if may_positive:
+                            vote = weight
+                        else:
+                            fallback_views[i] += 1
                 elif far and in_front and may_negative and occlusion_votes[i]:
                     vote = -weight
                 # A lookup that agrees only roughly (between the two tolerances) decides too: no splat vote then.

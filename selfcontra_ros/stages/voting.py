@@ -43,7 +43,11 @@ the band stay open to negative votes and to Stage 3. The same band of each
 fattened points out of the free-space z-buffer, where they would vote against
 the correct background they float in front of. In the band a negative may
 also ask for more than one view voting against it (``band_min_negative_views``;
-the labeler's default 2, this function's 1 is the paper).
+the labeler's default 2, this function's 1 is the paper). Last, a pixel no
+reference voted on may be confirmed by views less accurate than itself
+(``fallback_accuracy_ratio``, ``fallback_min_views``; off here, the paper): such
+agreement never casts a vote, so it gives positives only where the paper's rule
+has no evidence at all.
 """
 
 from __future__ import annotations
@@ -90,6 +94,9 @@ NEGATIVE_VOTERS = ("more_accurate", "any", "band")
 #: the reference's vote, as no vote.
 OCCLUSION_VOTES = ("everywhere", "band")
 
+# The lookup kernel's fallback counter when there is none (never written: its ratio is then 0).
+_NO_FALLBACK = np.zeros(0, dtype=np.int32)
+
 
 @dataclass(frozen=True)
 class VotingResult:
@@ -98,7 +105,8 @@ class VotingResult:
     Attributes:
         vote_sum: sum of the votes per pixel (0 where none).
         voted: whether the pixel received at least one vote.
-        labels: ``POSITIVE`` where the sum is > 0, ``NEGATIVE`` where < 0, else ``UNKNOWN``.
+        labels: ``POSITIVE`` where the sum is > 0 (or, unvoted, by the fallback of less accurate views),
+            ``NEGATIVE`` where < 0, else ``UNKNOWN``.
     """
 
     vote_sum: NDArray[np.float64]
@@ -127,6 +135,8 @@ def _reference_votes(
     free_space_sum: NDArray[np.float64] | None = None,
     free_space_voted: NDArray[np.bool_] | None = None,
     positive_accuracy_ratio: float = 1.0,
+    fallback_views: NDArray[np.int32] | None = None,
+    fallback_accuracy_ratio: float = 1.0,
 ) -> None:
     """Add the vote (if any) of one reference view to every valid query pixel, in place (flat ``(H*W,)``).
 
@@ -142,6 +152,8 @@ def _reference_votes(
     ``free_space_sum`` / ``free_space_voted`` (flat, both or neither): where the
     free-space votes go instead of ``vote_sum`` / ``voted``. ``positive_accuracy_ratio``: a lookup votes
     positive where ``u_r < positive_accuracy_ratio * u_q`` (1: only a more accurate one, the paper).
+    ``fallback_views`` (flat int32, or ``None``): one is added where a measurement that may not vote positive,
+    but is less accurate by under ``fallback_accuracy_ratio``, agrees; it casts no vote.
     """
     ref_from_query = ref.from_view(query)
     query_from_ref = query.from_view(ref)
@@ -175,6 +187,8 @@ def _reference_votes(
         negatives_from_any,
         float(positive_accuracy_ratio),
         occlusion_votes,
+        _NO_FALLBACK if fallback_views is None else fallback_views,
+        0.0 if fallback_views is None else float(fallback_accuracy_ratio),
     )
     if not free_space:
         return
@@ -329,6 +343,8 @@ def consistency_voting(
     positive_accuracy_ratio: float = 1.0,
     occlusion_votes: str = "everywhere",
     band_min_negative_views: int = 1,
+    fallback_accuracy_ratio: float = 1.0,
+    fallback_min_views: int = 2,
 ) -> VotingResult:
     """Stage 2 for one query view against the reference views ``refs``.
 
@@ -378,6 +394,12 @@ def consistency_voting(
         band_min_negative_views: in the query's own fattening band (of ``edge_jump_px``), a negative sum
             labels a pixel negative only where at least this many reference views cast a negative vote
             (occlusion or free-space) on it; otherwise it stays unknown. 1 = the paper (any negative sum).
+        fallback_accuracy_ratio: > ``positive_accuracy_ratio``: a pixel that no reference voted on is
+            positive where at least ``fallback_min_views`` references less accurate than that ratio allows, but
+            by under this many times ``u_q``, agree within ``positive_sigma`` (and the angle); such agreement
+            casts no vote, so every vote and every other label is that of the paper's rule. 1 = the paper (off).
+            The positive label's other conditions (band, hole margin, reliability, support) apply alike.
+        fallback_min_views: the agreeing less accurate references a fallback positive needs (>= 1).
     """
     n = query.valid.size
     mode = tolerance_code(tolerance)
@@ -389,6 +411,8 @@ def consistency_voting(
         raise ValueError(f"occlusion_votes must be one of {OCCLUSION_VOTES}, got {occlusion_votes!r}")
     if band_min_negative_views < 1:
         raise ValueError(f"band_min_negative_views must be >= 1, got {band_min_negative_views}")
+    if fallback_min_views < 1:
+        raise ValueError(f"fallback_min_views must be >= 1, got {fallback_min_views}")
     # The query's own fattening band (none without edge_jump_px), which several rules below read.
     query_band = (
         view_band(query, camera, edge_jump_px, edge_occluded_side_px, edge_other_px)
@@ -417,6 +441,8 @@ def consistency_voting(
     negative_views = np.zeros(n, dtype=np.int32) if counting else None
     ref_sum = np.zeros(n) if counting else full_sum
     ref_voted = np.zeros(n, dtype=bool) if counting else full_voted
+    # Per pixel, how many less accurate references agree (only where the fallback positive is on).
+    fallback = np.zeros(n, dtype=np.int32) if fallback_accuracy_ratio > positive_accuracy_ratio else None
     # One reference after the other, as the paper sums votes: the sums do not depend on how pixels are split
     # between threads.
     for ref in refs:
@@ -449,6 +475,8 @@ def consistency_voting(
             free_space_sum=fs_sum,
             free_space_voted=fs_voted,
             positive_accuracy_ratio=positive_accuracy_ratio,
+            fallback_views=fallback,
+            fallback_accuracy_ratio=fallback_accuracy_ratio,
         )
         if negative_views is not None:
             negative_views += ref_sum < 0
@@ -468,6 +496,9 @@ def consistency_voting(
         full_voted |= keep
     labels = np.full(n, UNKNOWN, dtype=np.uint8)
     positive = full_voted & (full_sum > 0)
+    if fallback is not None:
+        # Weaker evidence than a vote: the query's own match must be unambiguous too (View.reliable).
+        positive |= ~full_voted & (fallback >= fallback_min_views) & query.reliable
     if abstain_ambiguous:
         positive &= query.reliable  # an ambiguous match abstains from positives
     if min_query_support > 0:

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
+from typing import Any
+
 import numpy as np
 import pytest
 
@@ -40,16 +43,17 @@ def orbit_pose(theta_deg: float, radius: float = 8.0) -> np.ndarray:
     return pose
 
 
-def wall_disparity(pose: np.ndarray) -> np.ndarray:
+def wall_disparity(pose: np.ndarray, wall_z: float = WALL_Z) -> np.ndarray:
     u, v = np.meshgrid(np.arange(CAMERA.width, dtype=float), np.arange(CAMERA.height, dtype=float))
     rays = np.stack([(u - CAMERA.cx) / CAMERA.fx, (v - CAMERA.cy) / CAMERA.fy, np.ones_like(u)], axis=-1)
-    depth = (WALL_Z - pose[2, 3]) / (rays @ pose[2, :3])
+    depth = (wall_z - pose[2, 3]) / (rays @ pose[2, :3])
     return CAMERA.depth_to_disparity(depth)
 
 
-def view_at(theta_deg: float, radius: float = 8.0, index: int = 0, scale: float = 1.0) -> View:
+def view_at(theta_deg: float, radius: float = 8.0, index: int = 0, scale: float = 1.0, wall_z: float = WALL_Z) -> View:
     pose = orbit_pose(theta_deg, radius)
-    return make_view(CAMERA, wall_disparity(pose) * scale, pose, index=index, key=index, stamp=0.0, sigma_px=1.0)
+    disparity = wall_disparity(pose, wall_z) * scale
+    return make_view(CAMERA, disparity, pose, index=index, key=index, stamp=0.0, sigma_px=1.0)
 
 
 def _support(query: View, refs: list[View]) -> np.ndarray:
@@ -207,6 +211,44 @@ def test_positive_accuracy_ratio_lets_less_accurate_references_confirm() -> None
     assert not np.any(near.labels.reshape(shape)[CENTRE] == POSITIVE)
     with pytest.raises(ValueError, match="positive_accuracy_ratio"):
         consistency_voting(query, [far_ref], CAMERA, tolerance="sum", positive_accuracy_ratio=0.9, **KW)
+
+
+def test_fallback_confirms_only_pixels_no_reference_voted_on() -> None:
+    query = view_at(0.0, radius=9.0)
+    far_refs = [_supported(view_at(a, radius=14.0)) for a in (20.0, -20.0)]  # u_r 3-14 times u_q
+    highest = float(max(np.max(r.u[r.valid]) for r in far_refs) / np.min(query.u[query.valid]))
+    lowest = float(min(np.min(r.u[r.valid]) for r in far_refs) / np.max(query.u[query.valid]))
+    assert lowest > 2.0
+    shape = (CAMERA.height, CAMERA.width)
+    kw: dict[str, Any] = dict(tolerance="sum", fallback_accuracy_ratio=2.0 * highest, **KW)
+    # Two agreeing less accurate views: positive, yet no vote is cast.
+    two = consistency_voting(query, far_refs, CAMERA, fallback_min_views=2, **kw)
+    assert np.all(two.labels.reshape(shape)[CENTRE] == POSITIVE)
+    assert not two.voted.any() and not two.vote_sum.any()
+    # The query's own ambiguous matches (View.reliable false) get no fallback positive.
+    left_half = np.zeros(shape, dtype=bool)
+    left_half[:, : CAMERA.width // 2] = True
+    ambiguous = dataclasses.replace(query, reliable=query.reliable & ~left_half.ravel())
+    half = consistency_voting(ambiguous, far_refs, CAMERA, fallback_min_views=2, **kw).labels.reshape(shape)
+    split = CAMERA.width // 2 - CENTRE[1].start  # CENTRE's first column right of the ambiguous half
+    assert np.all(half[CENTRE][:, :split] == UNKNOWN) and np.all(half[CENTRE][:, split:] == POSITIVE)
+    # One agreeing view is not enough when two are asked for; a ratio under every u_r / u_q is the paper.
+    one = consistency_voting(query, far_refs[:1], CAMERA, fallback_min_views=2, **kw)
+    assert not np.any(one.labels == POSITIVE)
+    paper = consistency_voting(query, far_refs, CAMERA, **dict(kw, fallback_accuracy_ratio=0.5 * lowest))
+    assert not np.any(paper.labels == POSITIVE)
+    # Where a more accurate reference votes, the fallback never overrides it. The query sees a phantom wall 3 m
+    # in front of the true one (its disparity 1.5 times too large); two less accurate views see the same phantom
+    # and agree with it, one nearer view sees the true wall and votes the query's points occluding.
+    in_front = view_at(0.0, radius=9.0, scale=1.5)
+    liars = [_supported(view_at(a, radius=14.0, wall_z=WALL_Z - 3.0)) for a in (20.0, -20.0)]
+    alone = consistency_voting(in_front, liars, CAMERA, fallback_min_views=2, **kw)
+    assert np.all(alone.labels.reshape(shape)[CENTRE] == POSITIVE)  # the repeated error alone confirms itself
+    near_ref = _supported(view_at(0.0, radius=5.0))  # 5 m from the true wall, the query 6 m from its phantom
+    mixed = consistency_voting(in_front, [near_ref, *liars], CAMERA, fallback_min_views=2, **kw)
+    assert np.all(mixed.labels.reshape(shape)[CENTRE] == NEGATIVE)
+    with pytest.raises(ValueError, match="fallback_min_views"):
+        consistency_voting(query, far_refs, CAMERA, fallback_min_views=0, **kw)
 
 
 def test_less_accurate_references_vote_negative_only_when_allowed() -> None:
