@@ -392,8 +392,9 @@ class LabelerParams:
             seeds 1-10 at 1226x370 (accuracy / coverage / positive
             precision, its worst sequence, %): street 98.62 / 39.01 / 99.43,
             98.71 -> 98.65 / 41.72 / 99.43, 98.68; orbit 99.27 / 66.61 /
-            99.34, 99.00 -> 99.25 / 74.73 / 99.31, 98.96; room 97.18 / 37.42 / 99.61, 99.25 ->
-            97.24 / 38.65 / 99.59, 99.16. Variants on the tuning seeds:
+            99.34, 99.00 -> 99.25 / 74.73 / 99.31, 98.96; room 97.18 /
+            37.42 / 99.61, 99.25 -> 97.24 / 38.65 / 99.59, 99.16. Variants
+            on the tuning seeds:
             without the reliability condition street 42.46 / 99.42, 98.66,
             room 39.71 / 99.56, 99.08 (held out, room seed 40 then fell to
             98.47, under the 98.5 % floor; 98.51 with it); one view instead

@@ -398,7 +398,8 @@ def consistency_voting(
             positive where at least ``fallback_min_views`` references less accurate than that ratio allows, but
             by under this many times ``u_q``, agree within ``positive_sigma`` (and the angle); such agreement
             casts no vote, so every vote and every other label is that of the paper's rule. 1 = the paper (off).
-            The positive label's other conditions (band, hole margin, reliability, support) apply alike.
+            The query's own match must be reliable (``View.reliable``) whatever ``abstain_ambiguous``; the
+            positive label's other conditions (band, hole margin, support) apply alike.
         fallback_min_views: the agreeing less accurate references a fallback positive needs (>= 1).
     """
     n = query.valid.size
