@@ -236,10 +236,12 @@ def _confidence(
     scores = {k: float(np.mean(v)) for k, v in ratios.items() if v}
     suffixes = [""] + [f"_f{k}" for k in range(1, forest_seeds)]
     by_seed = [scores[f"self{x}"] / scores[f"gt{x}"] for x in suffixes if scores.get(f"gt{x}")]
+    # The oracles' names start with "gt_" too, so the self and ground-truth forests are named one by one.
+    forests = {f"{kind}{x}" for kind in ("self", "gt") for x in suffixes}
     out: dict[str, Any] = {
         "ausc_ratio_self": float(np.mean([scores[f"self{x}"] for x in suffixes])),
         "ausc_ratio_gt": float(np.mean([scores[f"gt{x}"] for x in suffixes])),
-        **{f"ausc_ratio_{k}": v for k, v in scores.items() if not k.startswith(("self", "gt"))},
+        **{f"ausc_ratio_{k}": v for k, v in scores.items() if k not in forests},
     }
     if by_seed:
         out["self_over_gt"] = float(np.mean(by_seed))
