@@ -182,6 +182,28 @@ def _oracle_folders(row: dict[str, Any], work: Path) -> dict[str, Path]:
     return folders
 
 
+def forest_figures(scores: dict[str, float], forest_seeds: int) -> dict[str, Any]:
+    """The summary of :func:`_confidence`'s mean AUSC / optimal per model (keyed by model file stem).
+
+    ``self`` / ``gt`` (and ``self_f1``, ``gt_f1``, ...) are the forests of each forest seed: their means are
+    ``ausc_ratio_self`` / ``ausc_ratio_gt`` and their ratios per seed ``self_over_gt_by_forest_seed``
+    (mean ``self_over_gt``); every other model (``lrd``, the oracles) keeps its own ``ausc_ratio_<name>``.
+    """
+    suffixes = [""] + [f"_f{k}" for k in range(1, forest_seeds)]
+    # The oracles' names start with "gt_" too, so the self and ground-truth forests are named one by one.
+    forests = {f"{kind}{x}" for kind in ("self", "gt") for x in suffixes}
+    out: dict[str, Any] = {
+        "ausc_ratio_self": float(np.mean([scores[f"self{x}"] for x in suffixes])),
+        "ausc_ratio_gt": float(np.mean([scores[f"gt{x}"] for x in suffixes])),
+        **{f"ausc_ratio_{k}": v for k, v in scores.items() if k not in forests},
+    }
+    by_seed = [scores[f"self{x}"] / scores[f"gt{x}"] for x in suffixes if scores.get(f"gt{x}")]
+    if by_seed:
+        out["self_over_gt"] = float(np.mean(by_seed))
+        out["self_over_gt_by_forest_seed"] = by_seed
+    return out
+
+
 def _confidence(
     scene: str,
     rows: list[dict[str, Any]],
@@ -233,19 +255,7 @@ def _confidence(
         results = evaluate_command(models, r["data"], folder / f"eval_s{r['seed']}")
         for key, values in ratios.items():
             values.append(float(results[key]["mean"]["ausc_ratio"]))
-    scores = {k: float(np.mean(v)) for k, v in ratios.items() if v}
-    suffixes = [""] + [f"_f{k}" for k in range(1, forest_seeds)]
-    by_seed = [scores[f"self{x}"] / scores[f"gt{x}"] for x in suffixes if scores.get(f"gt{x}")]
-    # The oracles' names start with "gt_" too, so the self and ground-truth forests are named one by one.
-    forests = {f"{kind}{x}" for kind in ("self", "gt") for x in suffixes}
-    out: dict[str, Any] = {
-        "ausc_ratio_self": float(np.mean([scores[f"self{x}"] for x in suffixes])),
-        "ausc_ratio_gt": float(np.mean([scores[f"gt{x}"] for x in suffixes])),
-        **{f"ausc_ratio_{k}": v for k, v in scores.items() if k not in forests},
-    }
-    if by_seed:
-        out["self_over_gt"] = float(np.mean(by_seed))
-        out["self_over_gt_by_forest_seed"] = by_seed
+    out = forest_figures({k: float(np.mean(v)) for k, v in ratios.items() if v}, forest_seeds)
     out["train_seeds"] = [r["seed"] for r in train]
     out["test_seeds"] = [r["seed"] for r in test]
     return out
