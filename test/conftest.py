@@ -1,12 +1,18 @@
-"""Shared fixtures: the real-data folder beside the repository, the numba kernels compiled once per session."""
+"""Shared fixtures: the real-data folder beside the repository, the numba kernels compiled once per session,
+the benchmark scripts loaded as modules."""
 
 from __future__ import annotations
 
+import importlib.util
+import sys
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from types import ModuleType
 
 import pytest
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+BENCH = Path(__file__).resolve().parents[1] / "bench"
 
 
 @pytest.fixture(scope="session")
@@ -30,3 +36,25 @@ def compiled_kernels() -> float:
     from selfcontra_ros.warmup import warm_up
 
     return warm_up()
+
+
+@pytest.fixture(scope="session")
+def bench_script() -> Iterator[Callable[[str], ModuleType]]:
+    """A loader of ``bench/<name>.py`` as a module (loaded once per session, taken out of ``sys.modules`` after)."""
+    loaded: dict[str, ModuleType] = {}
+
+    def load(name: str) -> ModuleType:
+        if name not in loaded:
+            spec = importlib.util.spec_from_file_location(f"{name}_bench", BENCH / f"{name}.py")
+            assert spec is not None and spec.loader is not None
+            module = importlib.util.module_from_spec(spec)
+            sys.modules[spec.name] = module  # dataclasses look their module up there
+            spec.loader.exec_module(module)
+            loaded[name] = module
+        return loaded[name]
+
+    try:
+        yield load
+    finally:
+        for module in loaded.values():
+            sys.modules.pop(module.__name__, None)

@@ -2,28 +2,15 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from collections.abc import Iterator
-from pathlib import Path
+from collections.abc import Callable
 from types import ModuleType
 
 import pytest
 
-_BENCH = Path(__file__).resolve().parents[1] / "bench" / "label_quality.py"
-
 
 @pytest.fixture(scope="module")
-def bench() -> Iterator[ModuleType]:
-    spec = importlib.util.spec_from_file_location("label_quality_bench", _BENCH)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    try:
-        spec.loader.exec_module(module)
-        yield module
-    finally:
-        sys.modules.pop(spec.name, None)
+def bench(bench_script: Callable[[str], ModuleType]) -> ModuleType:
+    return bench_script("label_quality")
 
 
 def test_oracles_named_gt_something_are_reported_apart_from_the_ground_truth_forest(bench: ModuleType) -> None:

@@ -2,11 +2,8 @@
 
 from __future__ import annotations
 
-import importlib.util
 import os
-import sys
-from collections.abc import Iterator
-from pathlib import Path
+from collections.abc import Callable
 from types import ModuleType
 
 import numpy as np
@@ -14,20 +11,10 @@ import pytest
 
 pytestmark = pytest.mark.ros
 
-_SOAK = Path(__file__).resolve().parents[2] / "bench" / "soak.py"
-
 
 @pytest.fixture(scope="module")
-def soak() -> Iterator[ModuleType]:
-    spec = importlib.util.spec_from_file_location("soak_bench", _SOAK)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # its dataclasses look their module up there
-    try:
-        spec.loader.exec_module(module)
-        yield module
-    finally:
-        sys.modules.pop(spec.name, None)
+def soak(bench_script: Callable[[str], ModuleType]) -> ModuleType:
+    return bench_script("soak")
 
 
 @pytest.mark.parametrize("frame_id", ["", "c", "cam_left_optical", "abcd"])  # every CDR alignment of the size
