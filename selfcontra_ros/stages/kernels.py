@@ -1286,7 +1286,7 @@ def lookup_votes_kernel(
     A measurement that may not vote positive but is less accurate by under ``fallback_accuracy_ratio``
     (``u_r < fallback_accuracy_ratio * u_q``) and agrees within ``positive_sq`` (and the angle) adds one to
     ``fallback_views[i]`` instead (int32 per query pixel): it casts no vote and decides nothing, so the votes
-    are those of a ratio of 1.
+    are those ``positive_accuracy_ratio`` alone gives.
 
     ``vote_sum[i] += vote`` and ``voted[i] |= vote != 0``: called once per
     reference in window order, the sums are those of adding whole vote arrays
