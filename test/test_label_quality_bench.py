@@ -1,10 +1,17 @@
-"""bench/label_quality.py's forest summary: the self and ground-truth forests apart from the other models."""
+"""bench/label_quality.py: its forest summary (the self and ground-truth forests apart from the other models), and a
+small run end to end."""
 
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
 from collections.abc import Callable
+from pathlib import Path
 from types import ModuleType
 
+import cv2
+import numpy as np
 import pytest
 
 
@@ -34,3 +41,60 @@ def test_one_forest_seed_reads_the_package_forests_only(bench: ModuleType) -> No
     out = bench.forest_figures({"self": 3.0, "gt": 2.0, "self_f1": 9.0, "lrd": 7.0}, forest_seeds=1)
     assert out["ausc_ratio_self"] == pytest.approx(3.0) and out["self_over_gt"] == pytest.approx(1.5)
     assert out["ausc_ratio_self_f1"] == pytest.approx(9.0)  # not a forest seed of this run
+
+
+def test_a_small_run_labels_trains_every_forest_and_mends_the_oracles_labels(bench: ModuleType, tmp_path: Path) -> None:
+    """End to end at 306x92 (about 10 s): render, label, train the self, ground-truth and oracle forests, plot.
+
+    Run as a command, as users run it (its thread cap is the process's own).
+    """
+    out, plot = tmp_path / "out", tmp_path / "lq.png"
+    argv = ["--scenes", "orbit", "--seeds", "1-2", "--size", "306x92", "--frames", "14", "--oracles"]
+    argv += ["--cache", str(tmp_path / "cache"), "--out", str(out), "--plot", str(plot)]
+    run = subprocess.run(
+        [sys.executable, str(Path(bench.__file__)), *argv], capture_output=True, text=True, timeout=600, check=False
+    )
+    assert run.returncode == 0, run.stderr[-3000:]
+    summary = json.loads(run.stdout.strip().splitlines()[-1])
+    rows = summary["sequences"]
+    assert [r["seed"] for r in rows] == [1, 2] and all(r["frames"] > 0 for r in rows)
+    # Orbit's labels at this size: 99 % accurate at 70-74 % coverage when written; the bounds leave room.
+    for r in rows:
+        assert r["accuracy"] >= 0.95 and r["positive_precision"] >= 0.97 and r["coverage"] >= 0.3, r
+    scene = summary["scenes"]["orbit"]
+    for key, _, larger_is_better in bench.FIGURES:
+        values = [r[key] for r in rows]
+        assert scene[key]["mean"] == pytest.approx(np.mean(values), rel=1e-12)
+        assert scene[key]["worst"] == (min(values) if larger_is_better else max(values))
+    forests = scene["confidence"]
+    assert forests["train_seeds"] == [1] and forests["test_seeds"] == [2]
+    ratios = {k: v for k, v in forests.items() if k.startswith("ausc_ratio_")}
+    assert {f"ausc_ratio_{name}" for name in ["self", "gt", "lrd", *bench.ORACLES]} <= ratios.keys()
+    assert all(np.isfinite(v) and v >= 1.0 - 1e-9 for v in ratios.values()), ratios  # optimal is a lower bound
+    assert forests["self_over_gt"] == pytest.approx(forests["ausc_ratio_self"] / forests["ausc_ratio_gt"])
+    # Both forests rank far better than the left-right difference alone (78x optimal against 4-6x when written).
+    assert max(forests["ausc_ratio_self"], forests["ausc_ratio_gt"]) < 0.5 * forests["ausc_ratio_lrd"]
+    # The oracles' labels: ground truth on every pixel the labeler labelled, the unlabelled ones left alone.
+    from selfcontra_ros.confidence.commands import iter_frames, training_matcher
+    from selfcontra_ros.evaluation.metrics import ground_truth_labels
+    from selfcontra_ros.labels import UNKNOWN
+    from selfcontra_ros.matching.base import make_matcher
+
+    own_root = out / "labels" / "orbit_s1"
+    data = bench._sequence(tmp_path / "cache", "orbit", 1, 14, (306, 92))  # the rendered one, kept in the cache
+    matcher = make_matcher(training_matcher([(data, own_root)]))
+    checked = 0
+    for frame in iter_frames(data):
+        name = f"{frame.index:06d}.png"
+        if not (own_root / "labels" / name).is_file():
+            continue
+        own = cv2.imread(str(own_root / "labels" / name), cv2.IMREAD_UNCHANGED)
+        mended = cv2.imread(str(out / "oracles" / "gt_at_labels" / "orbit_s1" / "labels" / name), cv2.IMREAD_UNCHANGED)
+        gt = ground_truth_labels(matcher.compute(frame.left, frame.right, with_right=False).left, frame.gt_disparity)
+        labelled = own != UNKNOWN
+        assert labelled.any() and np.array_equal(mended[labelled], gt[labelled]), name
+        assert (mended[~labelled] == UNKNOWN).all(), name
+        checked += 1
+    assert checked == rows[0]["frames"]
+    image = cv2.imread(str(plot))
+    assert image is not None and image.shape[0] > 100 and image.shape[1] > 100
