@@ -212,6 +212,7 @@ def _confidence(
     oracles: bool = False,
     forest_seeds: int = 1,
     band_share: float = float(TRAINING["band_negatives"]),
+    band_look: float = float(TRAINING["band_look"]),
 ) -> dict[str, Any]:
     """Ensemble forests trained on self labels / ground truth of the first half of the seeds, scored on the rest.
 
@@ -219,8 +220,8 @@ def _confidence(
     forest's ``random_state``; the sample draw stays the same) and the figures are means over them, with
     the self / ground-truth ratio per forest seed: one forest's AUSC moves by a few percent with its seed
     alone, which a label change must exceed to be seen. With ``oracles`` also on each :data:`ORACLES`
-    mending of the self labels (forest seed 0). ``band_share``: the self forests' ``train --band-negatives``;
-    the ground-truth forest takes none.
+    mending of the self labels (forest seed 0). ``band_share``, ``band_look``: the self forests'
+    ``train --band-negatives`` / ``--band-look``; the ground-truth forest takes neither.
     """
     from selfcontra_ros.confidence.commands import evaluate_command, train_command
 
@@ -236,7 +237,12 @@ def _confidence(
         forest = None if k == 0 else {"random_state": k}  # seed 0 is the package's forest as it is
         self_model, gt_model = folder / f"self{suffix}.npz", folder / f"gt{suffix}.npz"
         train_command(
-            [(r["data"], r["labels"]) for r in train], "ensemble", self_model, forest=forest, band_share=band_share
+            [(r["data"], r["labels"]) for r in train],
+            "ensemble",
+            self_model,
+            forest=forest,
+            band_share=band_share,
+            band_look=band_look,
         )
         train_command([(r["data"], "gt") for r in train], "ensemble", gt_model, forest=forest)
         models += [self_model, gt_model]
@@ -246,7 +252,7 @@ def _confidence(
         for name in ORACLES:
             model = folder / f"{name}.npz"
             pairs = [(r["data"], m[name]) for r, m in zip(train, mended, strict=True)]
-            train_command(pairs, "ensemble", model, band_share=band_share)
+            train_command(pairs, "ensemble", model, band_share=band_share, band_look=band_look)
             models.append(model)
     # Results are keyed by the model files' stems: "self", "gt" (and "self_f1", "gt_f1", ...), "lrd" and the
     # oracles' names.
@@ -322,6 +328,13 @@ def main(argv: list[str] | None = None) -> int:
         metavar="SHARE",
         help="with --confidence: the self forests' 'train --band-negatives' (default: train's default)",
     )
+    parser.add_argument(
+        "--band-look",
+        type=float,
+        default=float(TRAINING["band_look"]),
+        metavar="SCORE",
+        help="with --confidence: the self forests' 'train --band-look' (default: train's default)",
+    )
     parser.add_argument("--threads", type=int, default=0)
     args = parser.parse_args(argv)
     limit_threads(args.threads)
@@ -376,6 +389,7 @@ def main(argv: list[str] | None = None) -> int:
                     oracles=args.oracles,
                     forest_seeds=args.forest_seeds,
                     band_share=args.band_negatives,
+                    band_look=args.band_look,
                 )
                 scenes[scene]["confidence"] = result
                 if result:

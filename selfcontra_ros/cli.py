@@ -277,6 +277,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         slop=args.slop,
         stereo_inputs=[_stereo_input(args, Path(d)) if is_bag(Path(d)) else None for d in args.data],
         band_share=args.band_negatives,
+        band_look=args.band_look,
     )
     print(
         f"trained {summary['feature_set']} forest on {summary['samples']} samples from {summary['frames']} frames "
@@ -339,6 +340,7 @@ def _cmd_batch_train(args: argparse.Namespace) -> int:
         matcher=MatcherParams(algorithm=args.algorithm) if args.algorithm else None,
         max_per_input=args.max_per_input,
         band_share=args.band_negatives,
+        band_look=args.band_look,
         n_jobs=cap_jobs(args.jobs),
     )
     print(
@@ -349,7 +351,7 @@ def _cmd_batch_train(args: argparse.Namespace) -> int:
 
 
 def _add_band_negatives(parser: argparse.ArgumentParser) -> None:
-    """``--band-negatives`` of ``train`` and ``batch train``."""
+    """``--band-negatives`` and ``--band-look`` of ``train`` and ``batch train``."""
     parser.add_argument(
         "--band-negatives",
         type=float,
@@ -357,6 +359,15 @@ def _add_band_negatives(parser: argparse.ArgumentParser) -> None:
         metavar="SHARE",
         help="self labels only: the share of the unlabelled pixels of the query's fattening band drawn as "
         f"negatives (default {float(TRAINING['band_negatives']):g}; 0 = the paper: unknown pixels are ignored)",
+    )
+    parser.add_argument(
+        "--band-look",
+        type=float,
+        default=float(TRAINING["band_look"]),
+        metavar="SCORE",
+        help="self labels only: band pixels that look at least this much more like the object at their disparity "
+        "than like the background beyond their drop are not drawn as negatives (a z-score difference; default "
+        f"{float(TRAINING['band_look']):g}; inf = every band pixel is drawn)",
     )
 
 

@@ -37,6 +37,7 @@ from selfcontra_ros.confidence.commands import (
     input_rng,
     input_samples,
     merge_input_samples,
+    sampling_metadata,
     train_and_save,
     training_matcher,
 )
@@ -59,6 +60,7 @@ def sample_one(
     max_per_input: int | None,
     threads: int | None,
     band_share: float = float(constants.TRAINING["band_negatives"]),
+    band_look: float = float(constants.TRAINING["band_look"]),
 ) -> dict[str, Any]:
     """The samples of one ``(data, labels)`` pair as plain arrays; the body of one batch-train task.
 
@@ -78,6 +80,7 @@ def sample_one(
             max_per_class=max_per_class,
             max_per_input=max_per_input,
             band_share=band_share,
+            band_look=band_look,
         )
     except Exception as exc:  # reported with its input by the driver
         return {"error": f"{type(exc).__name__}: {exc}"}
@@ -104,6 +107,7 @@ def batch_train(
     max_per_input: int | None = None,
     seed: int = int(constants.TRAINING["seed"]),
     band_share: float = float(constants.TRAINING["band_negatives"]),
+    band_look: float = float(constants.TRAINING["band_look"]),
     n_jobs: int | None = None,
     forest: Mapping[str, Any] | None = None,
     progress: bool = True,
@@ -124,6 +128,7 @@ def batch_train(
         seed: seed of the draws.
         band_share: the share of the unknown pixels of the query's fattening band drawn as negatives
             (:func:`~selfcontra_ros.confidence.training.band_negatives`; 0 = the paper).
+        band_look: band pixels whose look is at least this are not drawn (``inf``: all are).
         n_jobs: scikit-learn workers of the final training.
         forest: overrides of the forest constants.
         progress: a progress bar over the finished inputs.
@@ -155,7 +160,7 @@ def batch_train(
         engine = open_engine(address, cpus_per_task=cpus_per_task, inputs=len(pairs), echo=echo)
     threads = cpus_per_task if engine.remote else None
     calls = [
-        (position, d, lab, features, asdict(params), seed, max_per_class, max_per_input, threads, band_share)
+        (position, d, lab, features, asdict(params), seed, max_per_class, max_per_input, threads, band_share, band_look)
         for position, (d, lab) in enumerate(pairs)
     ]
     results: dict[int, dict[str, Any]] = {}
@@ -176,7 +181,16 @@ def batch_train(
         raise BatchError("sampling failed for " + "; ".join(failed))
     parts = [_input_samples(features, results[p]) for p in range(len(calls))]
     samples = merge_input_samples(parts, [features])[features]
-    summary = train_and_save(samples, params, pairs, out, n_jobs=n_jobs, forest=forest, started=started)
+    summary = train_and_save(
+        samples,
+        params,
+        pairs,
+        out,
+        n_jobs=n_jobs,
+        forest=forest,
+        started=started,
+        sampling=sampling_metadata(band_share, band_look),
+    )
     summary.update(
         inputs=[item.name for item in used], left_out=[item.name for item in left_out], engine=engine.description
     )

@@ -89,6 +89,7 @@ __all__ = [
     "input_samples",
     "iter_frames",
     "merge_input_samples",
+    "sampling_metadata",
     "train_and_save",
     "train_command",
     "training_matcher",
@@ -274,6 +275,7 @@ def input_samples(
     stereo_input: StereoInput | None = None,
     slop: float | None = None,
     band_share: float = float(constants.TRAINING["band_negatives"]),
+    band_look: float = float(constants.TRAINING["band_look"]),
 ) -> InputSamples:
     """Balanced samples of one ``(data, labels)`` pair with query algorithm ``params`` (see :func:`collect_samples`).
 
@@ -288,6 +290,8 @@ def input_samples(
         namespace, stereo_input, slop: how a data bag is read (:func:`iter_frames`).
         band_share: self labels only (not ``gt``): the share of the unknown pixels of the query's fattening
             band drawn as negatives (:func:`~selfcontra_ros.confidence.training.band_negatives`; 0 = the paper).
+        band_look: band pixels whose look is at least this are not drawn (``band_negatives``' ``look``;
+            ``inf``: all are).
 
     Raises:
         SelfContraError: labels of a bag that match no frame of its data (or with data that is not a bag).
@@ -308,7 +312,9 @@ def input_samples(
         if label_image is None:
             continue
         if not source.is_ground_truth:
-            label_image = band_negatives(label_image, inputs.disparity, band_share, rng)
+            label_image = band_negatives(
+                label_image, inputs.disparity, band_share, rng, image=frame.left, look=band_look
+            )
         labelled += 1
         ctx = FeatureContext(inputs)
         for name in feature_sets:
@@ -372,13 +378,14 @@ def collect_samples(
     slop: float | None = None,
     max_per_input: int | None = None,
     band_share: float = float(constants.TRAINING["band_negatives"]),
+    band_look: float = float(constants.TRAINING["band_look"]),
 ) -> tuple[dict[str, Samples], MatcherParams]:
     """Balanced training samples of several feature sets from ``(data, labels)`` pairs; matching runs once per frame.
 
     ``namespace``, ``stereo_inputs`` (one per pair, None for a bag's own record) and ``slop``
     say how data bags are read (:func:`iter_frames`). Pair ``i`` draws its samples with
     :func:`input_rng` ``(seed, i)`` (:func:`input_samples`); ``max_per_input`` caps each pair's samples;
-    ``band_share`` as in :func:`input_samples`.
+    ``band_share`` and ``band_look`` as in :func:`input_samples`.
 
     Returns:
         ``({feature set: samples}, query algorithm parameters)``.
@@ -407,6 +414,7 @@ def collect_samples(
             stereo_input=stereo_input,
             slop=slop,
             band_share=band_share,
+            band_look=band_look,
         )
         for position, ((data, labels), stereo_input) in enumerate(zip(pairs, bag_inputs, strict=True))
     ]
@@ -426,6 +434,7 @@ def train_command(
     stereo_inputs: Sequence[StereoInput | None] | None = None,
     slop: float | None = None,
     band_share: float = float(constants.TRAINING["band_negatives"]),
+    band_look: float = float(constants.TRAINING["band_look"]),
 ) -> dict[str, Any]:
     """Train a confidence forest of feature set ``features`` and write it to ``out`` (``.npz``).
 
@@ -446,6 +455,7 @@ def train_command(
         slop: data bags' left and right images paired within this many seconds; None: as recorded.
         band_share: self labels only: the share of the unknown pixels of the query's fattening band drawn as
             negatives (:func:`~selfcontra_ros.confidence.training.band_negatives`; 0 = the paper).
+        band_look: self labels only: band pixels whose look is at least this are not drawn (``inf``: all are).
 
     Returns:
         Summary: ``model`` path, ``samples``, ``frames``, ``positive_share``, ``seconds``.
@@ -462,8 +472,23 @@ def train_command(
         stereo_inputs=stereo_inputs,
         slop=slop,
         band_share=band_share,
+        band_look=band_look,
     )
-    return train_and_save(samples[features], params, pairs, out, n_jobs=n_jobs, forest=forest, started=start)
+    return train_and_save(
+        samples[features],
+        params,
+        pairs,
+        out,
+        n_jobs=n_jobs,
+        forest=forest,
+        started=start,
+        sampling=None if all(str(lab) == GT for _, lab in pairs) else sampling_metadata(band_share, band_look),
+    )
+
+
+def sampling_metadata(band_share: float, band_look: float) -> dict[str, Any]:
+    """How self labels were turned into samples, as a model stores it (JSON: an infinite look is None)."""
+    return {"band_negatives": float(band_share), "band_look": float(band_look) if math.isfinite(band_look) else None}
 
 
 def train_and_save(
@@ -475,6 +500,7 @@ def train_and_save(
     n_jobs: int | None = None,
     forest: Mapping[str, Any] | None = None,
     started: float | None = None,
+    sampling: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Train the forest on a run's gathered samples and write it to ``out``: the end of :func:`train_command`.
 
@@ -486,6 +512,7 @@ def train_and_save(
         n_jobs: scikit-learn workers.
         forest: overrides of the forest constants.
         started: ``time.perf_counter()`` at the run's start, for ``seconds`` (None: now).
+        sampling: how self labels were sampled (:func:`sampling_metadata`), stored in the model as ``sampling``.
 
     Returns:
         Summary: ``model`` path, ``feature_set``, ``samples``, ``frames``, ``positive_share``, ``seconds``.
@@ -497,6 +524,8 @@ def train_and_save(
         "label_source": kinds.pop() if len(kinds) == 1 else "mixed",
         "sources": [{"data": str(d), "labels": str(lab)} for d, lab in pairs],
     }
+    if sampling is not None:
+        metadata["sampling"] = dict(sampling)
     model = train(samples, TrainParams(forest=dict(forest or {}), n_jobs=n_jobs, metadata=metadata))
     path = save_model(model, out)
     return {

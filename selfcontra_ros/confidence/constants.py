@@ -142,5 +142,13 @@ FOREST = MappingProxyType(
 
 #: Training-set sampling: at most this many positives (and as many negatives) per image; ``seed`` of the draw;
 #: ``band_negatives``: the share of the unlabelled pixels of the query's fattening band that self labels give
-#: the draw as negatives (:func:`~selfcontra_ros.confidence.training.band_negatives`; 0 = the paper).
-TRAINING = MappingProxyType({"max_per_class": 10000, "seed": 0, "band_negatives": 1.0})
+#: the draw as negatives (:func:`~selfcontra_ros.confidence.training.band_negatives`; 0 = the paper);
+#: ``band_look``: of those, the ones whose look (:func:`~selfcontra_ros.confidence.training.band_look_scores`)
+#: is at least this stay out of the draw (``inf``: every one is drawn).
+TRAINING = MappingProxyType({"max_per_class": 10000, "seed": 0, "band_negatives": 1.0, "band_look": float("inf")})
+
+#: The look of a band pixel (:func:`~selfcontra_ros.confidence.training.band_look_scores`): window (rows,
+#: columns), fewest pixels in each of its two sets, and the side of the Gaussian that smooths the grey image.
+BAND_LOOK_WINDOW: tuple[int, int] = (9, 49)
+BAND_LOOK_MIN_COUNT: int = 5
+BAND_LOOK_SMOOTHING: int = 3

@@ -30,6 +30,7 @@ __all__ = [
     "CurveRequest",
     "CurveStatistics",
     "ForestLayout",
+    "band_look",
     "curve_statistics",
     "disparity_entropy",
     "forest_layout",
@@ -526,6 +527,96 @@ def disparity_entropy(bins: NDArray[np.int32], valid: NDArray[np.bool_], window:
     """
     n_bins = int(bins[valid].max()) + 1 if valid.any() else 1
     return np.asarray(_disparity_entropy(np.ascontiguousarray(bins), np.ascontiguousarray(valid), n_bins, int(window)))
+
+
+@njit(cache=True, parallel=True)
+def _band_look(
+    grey: F32,
+    disparity: F32,
+    band: NDArray[np.bool_],
+    rows: I64,
+    cols: I64,
+    jump: float,
+    half_height: int,
+    half_width: int,
+    min_count: int,
+) -> F32:  # pragma: no cover - compiled
+    height, width = grey.shape
+    out = np.full(rows.size, np.nan, np.float32)
+    for k in prange(rows.size):
+        r, c = rows[k], cols[k]
+        own = disparity[r, c]
+        value = grey[r, c]
+        # Sums, sums of squares and counts of the background (0) and the object's interior (1).
+        s0 = q0 = s1 = q1 = 0.0
+        n0 = n1 = 0
+        for y in range(max(r - half_height, 0), min(r + half_height + 1, height)):
+            for x in range(max(c - half_width, 0), min(c + half_width + 1, width)):
+                d = disparity[y, x]
+                if not d > 0:  # NaN or invalid
+                    continue
+                v = grey[y, x]
+                if d < own - jump:
+                    s0 += v
+                    q0 += v * v
+                    n0 += 1
+                elif abs(d - own) <= 1.0 and not band[y, x]:
+                    s1 += v
+                    q1 += v * v
+                    n1 += 1
+        if n0 >= min_count and n1 >= min_count:
+            m0, m1 = s0 / n0, s1 / n1
+            # A flat set's spread is floored at one grey level, so that a pixel a level off is not infinitely far.
+            sd0 = math.sqrt(max(q0 / n0 - m0 * m0, 1.0))
+            sd1 = math.sqrt(max(q1 / n1 - m1 * m1, 1.0))
+            out[k] = abs(value - m0) / sd0 - abs(value - m1) / sd1
+    return out
+
+
+def band_look(
+    grey: NDArray[np.floating],
+    disparity: NDArray[np.floating],
+    band: NDArray[np.bool_],
+    rows: NDArray[np.integer],
+    cols: NDArray[np.integer],
+    *,
+    jump: float,
+    window: tuple[int, int],
+    min_count: int,
+) -> F32:
+    """How much more pixel ``(rows[k], cols[k])`` looks like the object at its disparity than the background beyond.
+
+    Over a ``window`` (height, width; odd) around the pixel, the *background* is the valid pixels more
+    than ``jump`` below the pixel's disparity and the *interior* those within 1 px of it and outside
+    ``band``. The look is the pixel's grey value as a z-score against the background minus its z-score
+    against the interior (each set's standard deviation floored at 1 grey level): positive where the
+    pixel resembles the interior, negative where it resembles the background.
+
+    Args:
+        grey: HxW float grey image (smoothed by the caller as it sees fit).
+        disparity: HxW disparity; non-finite or <= 0 is invalid.
+        band: HxW mask of the pixels never counted as interior (the fattening band).
+        rows, cols: (N,) pixels to score; each must hold a valid disparity.
+        jump: disparity drop to the background, pixels.
+        window: (height, width) of the window, odd, pixels.
+        min_count: fewest pixels each set needs; fewer gives NaN.
+
+    Returns:
+        (N,) float32 look; NaN where a set is too small.
+    """
+    return np.asarray(
+        _band_look(
+            np.ascontiguousarray(grey, dtype=np.float32),
+            np.ascontiguousarray(disparity, dtype=np.float32),
+            np.ascontiguousarray(band, dtype=np.bool_),
+            np.ascontiguousarray(rows, dtype=np.int64),
+            np.ascontiguousarray(cols, dtype=np.int64),
+            float(jump),
+            int(window[0]) // 2,
+            int(window[1]) // 2,
+            int(min_count),
+        )
+    )
 
 
 # ==================================================================== forest

@@ -119,6 +119,9 @@ class ConfidenceParams:
         band_negatives: the share of a labelled view's unlabelled pixels in the query's fattening band drawn
             as negatives (:func:`~selfcontra_ros.confidence.training.band_negatives`, as ``selfcontra
             train --band-negatives``; 0 = the paper).
+        band_look: of those, the ones that look at least this much more like the object at their disparity
+            than like the background beyond their drop stay out of the draw (as ``selfcontra train
+            --band-look``; ``inf``: every one is drawn).
         n_estimators: trees of the online forest.
         max_depth: depth limit of each tree.
         min_samples_leaf: smallest leaf, samples.
@@ -134,6 +137,7 @@ class ConfidenceParams:
     reservoir_per_class: int = 20000
     samples_per_view: int = 2000
     band_negatives: float = float(constants.TRAINING["band_negatives"])
+    band_look: float = float(constants.TRAINING["band_look"])
     n_estimators: int = 10
     max_depth: int = 12
     min_samples_leaf: int = 20
@@ -160,6 +164,8 @@ class ConfidenceParams:
                 raise SelfContraError(f"ConfidenceParams.{name} must be an integer >= 1, got {value!r}")
         if not 0.0 <= self.band_negatives <= 1.0:
             raise SelfContraError(f"ConfidenceParams.band_negatives must be in [0, 1], got {self.band_negatives}")
+        if not isinstance(self.band_look, float) or np.isnan(self.band_look):
+            raise SelfContraError(f"ConfidenceParams.band_look must be a number (inf: off), got {self.band_look!r}")
         if isinstance(self.max_depth, bool) or not isinstance(self.max_depth, int) or self.max_depth < 1:
             raise SelfContraError(f"ConfidenceParams.max_depth must be an integer >= 1, got {self.max_depth!r}")
 
@@ -464,7 +470,14 @@ class OnlineConfidence:
 
     def _learn(self, frame: ConfidenceFrame, labels: NDArray[np.uint8]) -> None:
         # Also checks that the label image has the disparity map's shape.
-        labels = band_negatives(labels, frame.disparity, self.params.band_negatives, self._draw_rng)
+        labels = band_negatives(
+            labels,
+            frame.disparity,
+            self.params.band_negatives,
+            self._draw_rng,
+            image=frame.left,
+            look=self.params.band_look,
+        )
         # The cheap context first: a view without both classes costs no census volume.
         at_valid = labels[frame.context(with_costs=False).valid]
         chosen = balanced_indices(at_valid, self.params.samples_per_view, self._draw_rng)

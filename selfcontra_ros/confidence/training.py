@@ -14,22 +14,35 @@ fattening band (:func:`band_negatives`) as negatives. Ground-truth labels are us
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from selfcontra_ros.confidence import constants
 from selfcontra_ros.confidence.features import FeatureContext, compute_features, feature_names
 from selfcontra_ros.confidence.forest import ForestModel, fit_forest
+from selfcontra_ros.confidence.kernels import band_look
 from selfcontra_ros.errors import SelfContraError
 from selfcontra_ros.labeler import LabelerParams
 from selfcontra_ros.labels import NEGATIVE, POSITIVE, UNKNOWN
+from selfcontra_ros.matching.base import to_grey
 from selfcontra_ros.stages.voting import fattening_band
 
-__all__ = ["Samples", "TrainParams", "balanced_indices", "band_negatives", "frame_samples", "merge_samples", "train"]
+__all__ = [
+    "Samples",
+    "TrainParams",
+    "balanced_indices",
+    "band_look_scores",
+    "band_negatives",
+    "frame_samples",
+    "merge_samples",
+    "train",
+]
 
 
 @dataclass
@@ -80,11 +93,53 @@ def balanced_indices(labels: NDArray[np.integer], max_per_class: int, rng: np.ra
     return np.sort(chosen).astype(np.int64)
 
 
+def band_look_scores(
+    image: NDArray[np.uint8],
+    disparity: NDArray[np.floating],
+    band: NDArray[np.bool_],
+    rows: NDArray[np.integer],
+    cols: NDArray[np.integer],
+) -> NDArray[np.float32]:
+    """The look of band pixels ``(rows, cols)``: like the object at their disparity (> 0) or the background (< 0).
+
+    A fattened pixel is background that carries the foreground's disparity, so it looks like the background
+    beyond its disparity drop; a right band pixel looks like the object's interior. The look
+    (:func:`~selfcontra_ros.confidence.kernels.band_look`; sizes ``BAND_LOOK_*`` in
+    :mod:`~selfcontra_ros.confidence.constants`) is the pixel's grey value (3x3 Gaussian-smoothed) as a
+    z-score against the pixels of a 9x49 window more than the labeler's ``stage2_edge_jump_px`` below its
+    disparity, minus its z-score against those within 1 px of its disparity outside the band. NaN where
+    either set has fewer than 5 pixels.
+
+    Args:
+        image: HxW grey or HxWx3 RGB left image of the disparity map.
+        disparity: HxW query disparity; non-finite or <= 0 is invalid.
+        band: HxW fattening band of ``disparity``.
+        rows, cols: (N,) band pixels to score (valid disparity).
+    """
+    grey = to_grey(np.asarray(image)).astype(np.float32)
+    if constants.BAND_LOOK_SMOOTHING > 1:
+        size = constants.BAND_LOOK_SMOOTHING
+        grey = np.asarray(cv2.GaussianBlur(grey, (size, size), 0), dtype=np.float32)
+    return band_look(
+        grey,
+        np.nan_to_num(np.asarray(disparity, dtype=np.float32), nan=-1.0, posinf=-1.0, neginf=-1.0),
+        band,
+        rows,
+        cols,
+        jump=LabelerParams().stage2_edge_jump_px,
+        window=constants.BAND_LOOK_WINDOW,
+        min_count=constants.BAND_LOOK_MIN_COUNT,
+    )
+
+
 def band_negatives(
     label_image: NDArray[np.integer],
     disparity: NDArray[np.floating],
     share: float,
     rng: np.random.Generator,
+    *,
+    image: NDArray[np.uint8] | None = None,
+    look: float = float("inf"),
 ) -> NDArray[np.uint8]:
     """``label_image`` with the unknown pixels of the query's fattening band drawn as negatives for training.
 
@@ -100,14 +155,24 @@ def band_negatives(
     pixels). As negatives they are noisy, which is why they go to training only and never into a label
     image: the forest learns the band as a prior and ranks inside it by the other features.
 
+    With a finite ``look`` the band pixels that look like the object at their disparity rather than the
+    background beyond their drop (:func:`band_look_scores` at least ``look``) stay out of the draw: they are
+    mostly right, and a right pixel drawn as a negative teaches the forest to distrust exactly the edges it
+    should trust. Pixels whose look cannot be computed are drawn.
+
     Args:
         label_image: HxW codes (0 unknown, 1 positive, 2 negative).
         disparity: HxW query disparity the labels belong to; non-finite or <= 0 is invalid (never drawn).
         share: probability that each unknown band pixel is drawn as a negative (0: the labels as they are).
         rng: random generator (used only for a share strictly between 0 and 1).
+        image: the left image of ``disparity`` (HxW grey or HxWx3 RGB); needed for a finite ``look``.
+        look: band pixels whose look is at least this are not drawn; ``inf``: every band pixel may be.
 
     Returns:
         HxW uint8 codes; labelled pixels are never changed.
+
+    Raises:
+        SelfContraError: shapes that do not match, or a finite ``look`` without an image.
     """
     labels = np.asarray(label_image).astype(np.uint8)
     if labels.shape != np.shape(disparity):
@@ -124,6 +189,15 @@ def band_negatives(
     picked = band & (labels == UNKNOWN)
     if share < 1:
         picked &= rng.random(labels.shape) < share
+    if math.isfinite(look) and picked.any():
+        if image is None:
+            raise SelfContraError("band_negatives: a finite look needs the left image")
+        if np.shape(image)[:2] != labels.shape:
+            raise SelfContraError(f"image {np.shape(image)} does not match the disparity map {labels.shape}")
+        rows, cols = np.nonzero(picked)
+        scores = band_look_scores(image, disparity, band, rows, cols)
+        kept = scores >= look  # NaN compares False: drawn
+        picked[rows[kept], cols[kept]] = False
     labels[picked] = NEGATIVE
     return labels
 

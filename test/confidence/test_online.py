@@ -25,7 +25,8 @@ from selfcontra_ros.labels import NEGATIVE, POSITIVE
 from selfcontra_ros.matching.base import MatcherParams, make_matcher
 
 MATCHER = MatcherParams(num_disparities=64)
-TINY = {"n_estimators": 3, "max_depth": 6, "min_samples_leaf": 5, "samples_per_view": 300}
+TINY_FOREST = {"n_estimators": 3, "max_depth": 6, "min_samples_leaf": 5}
+TINY = {**TINY_FOREST, "samples_per_view": 300}
 
 
 @pytest.fixture(scope="module")
@@ -105,6 +106,28 @@ def test_params_are_checked() -> None:
         ConfidenceParams(confidence_threshold=1.5)
     with pytest.raises(SelfContraError, match="retrain_every"):
         ConfidenceParams(retrain_every=0)
+    with pytest.raises(SelfContraError, match="band_look"):
+        ConfidenceParams(band_look=float("nan"))
+
+
+def test_band_look_keeps_the_objects_own_band_pixels_out_of_the_reservoir() -> None:
+    # An object from column 80 on (bright) before a dark background; the matcher spread its disparity 6 px left.
+    rng = np.random.default_rng(1)
+    image = np.clip(np.where(np.arange(200) >= 80, 200.0, 50.0) + rng.normal(0, 5, (40, 200)), 0, 255)
+    image = image.astype(np.uint8)
+    d = np.full(image.shape, 10.0, np.float32)
+    d[:, 74:] = 30.0
+    frame = ConfidenceFrame(image, image, d, None, MatcherParams(num_disparities=48))
+    labels = np.zeros(d.shape, np.uint8)
+    labels[:, 120:190] = POSITIVE
+    seen = {}
+    for look in (float("inf"), -1.0):
+        params = ConfidenceParams(retrain_every=100, samples_per_view=5000, band_look=look, **TINY_FOREST)
+        online = OnlineConfidence(params, background=False, log=lambda _: None)
+        online.add_labelled(frame, labels)
+        seen[look] = online.reservoirs[NEGATIVE].seen
+    # The band is the 20 columns from 74; its fattened 6 columns look like the background.
+    assert seen[float("inf")] == 40 * 20 and seen[-1.0] == 40 * 6
 
 
 def test_labelled_views_give_a_balanced_bounded_reservoir_and_a_forest(labelled_frames: list) -> None:

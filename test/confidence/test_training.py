@@ -1,4 +1,4 @@
-"""Training-sample helpers: the fattening band's unlabelled pixels as negatives (``band_negatives``)."""
+"""Training-sample helpers: the fattening band's unlabelled pixels as negatives (``band_negatives``), and their look."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ from selfcontra_ros.confidence.commands import _label_source, iter_frames, train
 from selfcontra_ros.confidence.features import FeatureContext
 from selfcontra_ros.confidence.forest import load_model
 from selfcontra_ros.confidence.inputs import query_feature_input
+from selfcontra_ros.confidence.kernels import band_look
 from selfcontra_ros.confidence.training import band_negatives
 from selfcontra_ros.datasets.synthetic import write_sequence
 from selfcontra_ros.errors import SelfContraError
@@ -70,6 +71,72 @@ def test_band_negatives_share_draws_that_share() -> None:
         band_negatives(labels[:, :-1], d, 1.0, np.random.default_rng(0))
 
 
+def _look_reference(
+    grey: np.ndarray, d: np.ndarray, band: np.ndarray, r: int, c: int, jump: float, window: tuple[int, int], least: int
+) -> float:
+    """The look of one pixel, written out (float64)."""
+    hh, hw = window[0] // 2, window[1] // 2
+    ys, xs = slice(max(r - hh, 0), r + hh + 1), slice(max(c - hw, 0), c + hw + 1)
+    g, w, b = grey[ys, xs].astype(np.float64), d[ys, xs], band[ys, xs]
+    valid = np.isfinite(w) & (w > 0)
+    background = g[valid & (w < d[r, c] - jump)]
+    interior = g[valid & (np.abs(w - d[r, c]) <= 1) & ~b & ~(w < d[r, c] - jump)]
+    if background.size < least or interior.size < least:
+        return float("nan")
+    z = [abs(grey[r, c] - s.mean()) / np.sqrt(max(s.var(), 1.0)) for s in (background, interior)]
+    return float(z[0] - z[1])
+
+
+def test_band_look_matches_the_written_out_score() -> None:
+    rng = np.random.default_rng(4)
+    grey = rng.uniform(0, 255, (30, 70)).astype(np.float32)
+    d = rng.choice(np.array([5.0, 9.0, 9.5, 10.0, 20.0, np.nan], np.float32), size=grey.shape)
+    band = rng.random(grey.shape) < 0.3
+    rows, cols = np.nonzero(np.isfinite(d))
+    got = band_look(grey, d, band, rows, cols, jump=4.0, window=(5, 11), min_count=5)
+    want = np.array([_look_reference(grey, d, band, r, c, 4.0, (5, 11), 5) for r, c in zip(rows, cols, strict=True)])
+    assert np.isnan(want).any() and np.isfinite(want).sum() > 100  # both cases occur
+    assert np.array_equal(np.isnan(got), np.isnan(want))
+    ok = np.isfinite(want)
+    # float32 output of float64 sums: a few ulp of values up to about 10.
+    np.testing.assert_allclose(got[ok], want[ok], rtol=1e-5, atol=1e-4)
+
+
+def _fattened_edge(width: int = 200, height: int = 40, edge: int = 80, fat: int = 6) -> tuple[np.ndarray, np.ndarray]:
+    """An object from column ``edge`` on (bright) before a dark background, its disparity spread ``fat`` px left."""
+    rng = np.random.default_rng(1)
+    image = np.where(np.arange(width) >= edge, 200.0, 50.0) + rng.normal(0, 5, (height, width))
+    d = np.full((height, width), 10.0, np.float32)
+    d[:, edge - fat :] = 30.0
+    return np.clip(image, 0, 255).astype(np.uint8), d
+
+
+def test_band_negatives_look_leaves_the_objects_own_pixels_out_of_the_draw() -> None:
+    image, d = _fattened_edge()
+    labels = np.zeros(d.shape, np.uint8)
+    everything = band_negatives(labels, d, 1.0, np.random.default_rng(0))  # inf: every band pixel (stop 40 on)
+    band = everything == NEGATIVE
+    assert band[:, 74:94].all() and not band[:, :74].any() and not band[:, 95:].any()
+    out = band_negatives(labels, d, 1.0, np.random.default_rng(0), image=image, look=-1.0)
+    # The fattened pixels (background carrying the object's disparity) look like the background: drawn;
+    # the object's own band pixels look like its interior: left unknown.
+    assert (out[:, 74:80] == NEGATIVE).all()
+    assert (out[:, 80:] == UNKNOWN).all()
+    # An RGB image is read as its grey.
+    rgb = np.repeat(image[:, :, None], 3, axis=2)
+    assert np.array_equal(band_negatives(labels, d, 1.0, np.random.default_rng(0), image=rgb, look=-1.0), out)
+    # Where a set is too small to compare with the pixel is drawn: a 2x2 hole (4 background pixels < 5).
+    hole = np.full(d.shape, 30.0, np.float32)
+    hole[20:22, 100:102] = 10.0
+    drawn = band_negatives(labels, hole, 1.0, np.random.default_rng(0))
+    assert (drawn == NEGATIVE).sum() > 0
+    assert np.array_equal(band_negatives(labels, hole, 1.0, np.random.default_rng(0), image=image, look=-1.0), drawn)
+    with pytest.raises(SelfContraError, match="needs the left image"):
+        band_negatives(labels, d, 1.0, np.random.default_rng(0), look=-1.0)
+    with pytest.raises(SelfContraError, match="does not match"):
+        band_negatives(labels, d, 1.0, np.random.default_rng(0), image=image[:, :-1], look=-1.0)
+
+
 @pytest.fixture(scope="module")
 def labelled(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     """A small street sequence and a label folder holding only its ground truth's positives."""
@@ -105,4 +172,10 @@ def test_train_command_line_takes_the_share(labelled: tuple[Path, Path], tmp_pat
     base = ["train", "--features", "gcp", "--data", str(data), "--labels", str(labels)]
     assert main([*base, "--out", str(tmp_path / "paper.npz"), "--band-negatives", "0"]) == 2  # one class only
     assert main([*base, "--out", str(tmp_path / "band.npz")]) == 0
-    assert load_model(tmp_path / "band.npz").metadata["feature_set"] == "gcp"
+    metadata = load_model(tmp_path / "band.npz").metadata
+    assert metadata["feature_set"] == "gcp"
+    assert metadata["sampling"] == {"band_negatives": 1.0, "band_look": None}  # the defaults; None: every band pixel
+    assert main([*base, "--out", str(tmp_path / "look.npz"), "--band-look", "-1"]) == 0
+    assert load_model(tmp_path / "look.npz").metadata["sampling"] == {"band_negatives": 1.0, "band_look": -1.0}
+    summary = train_command([(data, "gt")], "gcp", tmp_path / "gt.npz", forest=SMALL_FOREST, matcher=MATCHER)
+    assert "sampling" not in load_model(summary["model"]).metadata  # ground truth is taken as it is
