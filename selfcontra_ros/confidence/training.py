@@ -7,7 +7,9 @@ image with only one class contributes nothing.
 
 Deviation, on by default (``band_negatives``, :data:`~selfcontra_ros.confidence.constants.TRAINING`; 0 = the
 paper, where unknown pixels are ignored): self labels lend the draw the unlabelled pixels of the query's own
-fattening band (:func:`band_negatives`) as negatives. Ground-truth labels are used as they are.
+fattening band (:func:`band_negatives`) as negatives, except those that look like the object at their
+disparity rather than the background beyond their drop (``band_look``, -1 by default; ``inf``: every band
+pixel). Ground-truth labels are used as they are.
 
 :func:`train` is a pure function of its samples and parameters.
 """
@@ -107,8 +109,9 @@ def band_look_scores(
     (:func:`~selfcontra_ros.confidence.kernels.band_look`; sizes ``BAND_LOOK_*`` in
     :mod:`~selfcontra_ros.confidence.constants`) is the pixel's grey value (3x3 Gaussian-smoothed) as a
     z-score against the pixels of a 9x49 window more than the labeler's ``stage2_edge_jump_px`` below its
-    disparity, minus its z-score against those within 1 px of its disparity outside the band. NaN where
-    either set has fewer than 5 pixels.
+    disparity, minus its z-score against those within 1 px of its disparity outside the band. Where either
+    set has fewer than 5 pixels, the same over the next of ``BAND_LOOK_WINDOWS`` (none by default); NaN
+    where the last falls short too.
 
     Args:
         image: HxW grey or HxWx3 RGB left image of the disparity map.
@@ -120,16 +123,27 @@ def band_look_scores(
     if constants.BAND_LOOK_SMOOTHING > 1:
         size = constants.BAND_LOOK_SMOOTHING
         grey = np.asarray(cv2.GaussianBlur(grey, (size, size), 0), dtype=np.float32)
-    return band_look(
-        grey,
-        np.nan_to_num(np.asarray(disparity, dtype=np.float32), nan=-1.0, posinf=-1.0, neginf=-1.0),
-        band,
-        rows,
-        cols,
-        jump=LabelerParams().stage2_edge_jump_px,
-        window=constants.BAND_LOOK_WINDOW,
-        min_count=constants.BAND_LOOK_MIN_COUNT,
-    )
+    valid = np.nan_to_num(np.asarray(disparity, dtype=np.float32), nan=-1.0, posinf=-1.0, neginf=-1.0)
+    rows, cols = np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
+    jump = LabelerParams().stage2_edge_jump_px
+    look = np.full(rows.size, np.nan, np.float32)
+    pending = np.arange(rows.size)
+    for window in constants.BAND_LOOK_WINDOWS:
+        if pending.size == 0:
+            break
+        found = band_look(
+            grey,
+            valid,
+            band,
+            rows[pending],
+            cols[pending],
+            jump=jump,
+            window=window,
+            min_count=constants.BAND_LOOK_MIN_COUNT,
+        )
+        look[pending] = found
+        pending = pending[np.isnan(found)]
+    return look
 
 
 def band_negatives(

@@ -11,12 +11,14 @@ import numpy as np
 import pytest
 
 from selfcontra_ros.cli import main
+from selfcontra_ros.confidence import constants
 from selfcontra_ros.confidence.commands import _label_source, iter_frames, train_command
+from selfcontra_ros.confidence.constants import BAND_LOOK_MIN_COUNT, BAND_LOOK_SMOOTHING
 from selfcontra_ros.confidence.features import FeatureContext
 from selfcontra_ros.confidence.forest import load_model
 from selfcontra_ros.confidence.inputs import query_feature_input
 from selfcontra_ros.confidence.kernels import band_look
-from selfcontra_ros.confidence.training import band_negatives
+from selfcontra_ros.confidence.training import band_look_scores, band_negatives
 from selfcontra_ros.datasets.synthetic import write_sequence
 from selfcontra_ros.errors import SelfContraError
 from selfcontra_ros.labeler import LabelerParams
@@ -102,6 +104,35 @@ def test_band_look_matches_the_written_out_score() -> None:
     np.testing.assert_allclose(got[ok], want[ok], rtol=1e-5, atol=1e-4)
 
 
+def test_band_look_scores_fall_back_to_the_wider_window_where_the_first_is_short(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    windows = ((9, 49), (17, 81))
+    monkeypatch.setattr(constants, "BAND_LOOK_WINDOWS", windows)
+    rng = np.random.default_rng(5)
+    image = rng.integers(0, 256, (60, 160)).astype(np.uint8)
+    # Sparse background (disparity 5) among an object at 20: many 9x49 windows hold fewer than 5 of it.
+    d = np.where(rng.random(image.shape) < 0.004, 5.0, 20.0).astype(np.float32)
+    band = rng.random(image.shape) < 0.2
+    rows, cols = np.nonzero(band)
+    got = band_look_scores(image, d, band, rows, cols)
+    grey = cv2.GaussianBlur(image.astype(np.float32), (BAND_LOOK_SMOOTHING, BAND_LOOK_SMOOTHING), 0)
+    jump = LabelerParams().stage2_edge_jump_px
+    want = np.full(rows.size, np.nan)
+    for window in windows:
+        for k in np.flatnonzero(np.isnan(want)):
+            want[k] = _look_reference(grey, d, band, rows[k], cols[k], jump, window, BAND_LOOK_MIN_COUNT)
+    first = [
+        _look_reference(grey, d, band, r, c, jump, windows[0], BAND_LOOK_MIN_COUNT)
+        for r, c in zip(rows, cols, strict=True)
+    ]
+    wider = np.isnan(first) & np.isfinite(want)
+    assert wider.sum() > 50 and np.isnan(want).sum() > 10  # the fallback scores some, and some stay NaN
+    assert np.array_equal(np.isnan(got), np.isnan(want))
+    ok = np.isfinite(want)
+    np.testing.assert_allclose(got[ok], want[ok], rtol=1e-5, atol=1e-4)
+
+
 def _fattened_edge(width: int = 200, height: int = 40, edge: int = 80, fat: int = 6) -> tuple[np.ndarray, np.ndarray]:
     """An object from column ``edge`` on (bright) before a dark background, its disparity spread ``fat`` px left."""
     rng = np.random.default_rng(1)
@@ -174,8 +205,8 @@ def test_train_command_line_takes_the_share(labelled: tuple[Path, Path], tmp_pat
     assert main([*base, "--out", str(tmp_path / "band.npz")]) == 0
     metadata = load_model(tmp_path / "band.npz").metadata
     assert metadata["feature_set"] == "gcp"
-    assert metadata["sampling"] == {"band_negatives": 1.0, "band_look": None}  # the defaults; None: every band pixel
-    assert main([*base, "--out", str(tmp_path / "look.npz"), "--band-look", "-1"]) == 0
-    assert load_model(tmp_path / "look.npz").metadata["sampling"] == {"band_negatives": 1.0, "band_look": -1.0}
+    assert metadata["sampling"] == {"band_negatives": 1.0, "band_look": -1.0}  # the defaults
+    assert main([*base, "--out", str(tmp_path / "all.npz"), "--band-look", "inf"]) == 0
+    assert load_model(tmp_path / "all.npz").metadata["sampling"] == {"band_negatives": 1.0, "band_look": None}
     summary = train_command([(data, "gt")], "gcp", tmp_path / "gt.npz", forest=SMALL_FOREST, matcher=MATCHER)
     assert "sampling" not in load_model(summary["model"]).metadata  # ground truth is taken as it is
