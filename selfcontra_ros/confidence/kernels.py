@@ -603,14 +603,24 @@ def band_look(
 
     Returns:
         (N,) float32 look; NaN where a set is too small.
+
+    Raises:
+        ValueError: images of different shapes, or a pixel outside them (the kernel does not check bounds).
     """
+    shape = np.shape(grey)
+    if np.shape(disparity) != shape or np.shape(band) != shape:
+        raise ValueError(f"band_look: grey {shape}, disparity {np.shape(disparity)} and band {np.shape(band)} differ")
+    r: I64 = np.ascontiguousarray(rows, dtype=np.int64)
+    c: I64 = np.ascontiguousarray(cols, dtype=np.int64)
+    if r.shape != c.shape or (r.size and (r.min() < 0 or r.max() >= shape[0] or c.min() < 0 or c.max() >= shape[1])):
+        raise ValueError(f"band_look: pixels must be pairs inside the {shape} image")
     return np.asarray(
         _band_look(
             np.ascontiguousarray(grey, dtype=np.float32),
             np.ascontiguousarray(disparity, dtype=np.float32),
             np.ascontiguousarray(band, dtype=np.bool_),
-            np.ascontiguousarray(rows, dtype=np.int64),
-            np.ascontiguousarray(cols, dtype=np.int64),
+            r,
+            c,
             float(jump),
             int(window[0]) // 2,
             int(window[1]) // 2,

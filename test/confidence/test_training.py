@@ -102,6 +102,10 @@ def test_band_look_matches_the_written_out_score() -> None:
     ok = np.isfinite(want)
     # float32 output of float64 sums: a few ulp of values up to about 10.
     np.testing.assert_allclose(got[ok], want[ok], rtol=1e-5, atol=1e-4)
+    with pytest.raises(ValueError, match="differ"):
+        band_look(grey[:, :-1], d, band, rows, cols, jump=4.0, window=(5, 11), min_count=5)
+    with pytest.raises(ValueError, match="inside"):
+        band_look(grey, d, band, rows + 30, cols, jump=4.0, window=(5, 11), min_count=5)
 
 
 def test_band_look_scores_fall_back_to_the_wider_window_where_the_first_is_short(
