@@ -482,7 +482,7 @@ def train_command(
         n_jobs=n_jobs,
         forest=forest,
         started=start,
-        sampling=None if all(str(lab) == GT for _, lab in pairs) else sampling_metadata(band_share, band_look),
+        sampling=sampling_metadata(band_share, band_look),
     )
 
 
@@ -512,7 +512,8 @@ def train_and_save(
         n_jobs: scikit-learn workers.
         forest: overrides of the forest constants.
         started: ``time.perf_counter()`` at the run's start, for ``seconds`` (None: now).
-        sampling: how self labels were sampled (:func:`sampling_metadata`), stored in the model as ``sampling``.
+        sampling: how self labels were sampled (:func:`sampling_metadata`), stored in the model as ``sampling``
+            when a pair has self labels (ground truth is used as it is).
 
     Returns:
         Summary: ``model`` path, ``feature_set``, ``samples``, ``frames``, ``positive_share``, ``seconds``.
@@ -524,7 +525,7 @@ def train_and_save(
         "label_source": kinds.pop() if len(kinds) == 1 else "mixed",
         "sources": [{"data": str(d), "labels": str(lab)} for d, lab in pairs],
     }
-    if sampling is not None:
+    if sampling is not None and any(str(labels) != GT for _, labels in pairs):
         metadata["sampling"] = dict(sampling)
     model = train(samples, TrainParams(forest=dict(forest or {}), n_jobs=n_jobs, metadata=metadata))
     path = save_model(model, out)

@@ -553,7 +553,7 @@ def _band_look(
         for y in range(max(r - half_height, 0), min(r + half_height + 1, height)):
             for x in range(max(c - half_width, 0), min(c + half_width + 1, width)):
                 d = disparity[y, x]
-                if not d > 0:  # NaN or invalid
+                if not 0 < d < math.inf:  # NaN, infinite or invalid
                     continue
                 v = grey[y, x]
                 if d < own - jump:

@@ -123,7 +123,6 @@ def band_look_scores(
     if constants.BAND_LOOK_SMOOTHING > 1:
         size = constants.BAND_LOOK_SMOOTHING
         grey = np.asarray(cv2.GaussianBlur(grey, (size, size), 0), dtype=np.float32)
-    valid = np.nan_to_num(np.asarray(disparity, dtype=np.float32), nan=-1.0, posinf=-1.0, neginf=-1.0)
     rows, cols = np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
     jump = LabelerParams().stage2_edge_jump_px
     look = np.full(rows.size, np.nan, np.float32)
@@ -133,7 +132,7 @@ def band_look_scores(
             break
         found = band_look(
             grey,
-            valid,
+            disparity,
             band,
             rows[pending],
             cols[pending],

@@ -92,7 +92,7 @@ def _look_reference(
 def test_band_look_matches_the_written_out_score() -> None:
     rng = np.random.default_rng(4)
     grey = rng.uniform(0, 255, (30, 70)).astype(np.float32)
-    d = rng.choice(np.array([5.0, 9.0, 9.5, 10.0, 20.0, np.nan], np.float32), size=grey.shape)
+    d = rng.choice(np.array([5.0, 9.0, 9.5, 10.0, 20.0, np.nan, np.inf], np.float32), size=grey.shape)
     band = rng.random(grey.shape) < 0.3
     rows, cols = np.nonzero(np.isfinite(d))
     got = band_look(grey, d, band, rows, cols, jump=4.0, window=(5, 11), min_count=5)
