@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from selfcontra_ros import interrupts
-from selfcontra_ros.confidence.constants import TRAINING
+from selfcontra_ros.confidence.constants import FOREST, TRAINING
 from selfcontra_ros.datasets import SCENES
 from selfcontra_ros.errors import SelfContraError
 
@@ -278,6 +278,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         stereo_inputs=[_stereo_input(args, Path(d)) if is_bag(Path(d)) else None for d in args.data],
         band_share=args.band_negatives,
         band_look=args.band_look,
+        forest={"random_state": args.forest_seed},
     )
     print(
         f"trained {summary['feature_set']} forest on {summary['samples']} samples from {summary['frames']} frames "
@@ -342,6 +343,7 @@ def _cmd_batch_train(args: argparse.Namespace) -> int:
         band_share=args.band_negatives,
         band_look=args.band_look,
         n_jobs=cap_jobs(args.jobs),
+        forest={"random_state": args.forest_seed},
     )
     print(
         f"trained {summary['feature_set']} forest on {summary['samples']} samples from {summary['frames']} frames "
@@ -350,8 +352,16 @@ def _cmd_batch_train(args: argparse.Namespace) -> int:
     return 0
 
 
-def _add_band_negatives(parser: argparse.ArgumentParser) -> None:
-    """``--band-negatives`` and ``--band-look`` of ``train`` and ``batch train``."""
+def _forest_seed(text: str) -> int:
+    """``--forest-seed``: scikit-learn takes a random state in 0 .. 2**32 - 1."""
+    seed = int(text)
+    if not 0 <= seed < 2**32:
+        raise argparse.ArgumentTypeError(f"a forest seed is in 0 .. 2**32 - 1, not {seed}")
+    return seed
+
+
+def _add_training_options(parser: argparse.ArgumentParser) -> None:
+    """``--band-negatives``, ``--band-look`` and ``--forest-seed`` of ``train`` and ``batch train``."""
     parser.add_argument(
         "--band-negatives",
         type=float,
@@ -368,6 +378,16 @@ def _add_band_negatives(parser: argparse.ArgumentParser) -> None:
         help="self labels only: band pixels that look at least this much more like the object at their disparity "
         "than like the background beyond their drop are not drawn as negatives (a z-score difference; default "
         f"{float(TRAINING['band_look']):g}; inf = every band pixel is drawn)",
+    )
+    default_seed = _forest_seed(str(FOREST["random_state"]))
+    parser.add_argument(
+        "--forest-seed",
+        type=_forest_seed,
+        default=default_seed,
+        metavar="N",
+        help="random state of the forest (bootstrap draws and split features; default "
+        f"{default_seed}): retrain with other seeds to see how much of a difference between two "
+        "models is the forest's own spread",
     )
 
 
@@ -403,7 +423,7 @@ def _add_batch_parser(sub: Any) -> None:
         "--algorithm", choices=("sgbm", "bm", "census_sgm"), default=None, help="query algorithm if labels name none"
     )
     train.add_argument("--max-per-input", type=int, default=None, help="cap on one input's samples (default none)")
-    _add_band_negatives(train)
+    _add_training_options(train)
     train.add_argument("--jobs", type=int, default=None, help="scikit-learn worker processes of the training")
     train.set_defaults(handler=_cmd_batch_train)
     for parser in (label, train):
@@ -563,7 +583,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="query algorithm for 'gt' labels (label folders bring their own; default sgbm)",
     )
     train.add_argument("--jobs", type=int, default=None, help="scikit-learn worker processes (default 1)")
-    _add_band_negatives(train)
+    _add_training_options(train)
     _add_bag_data_options(train, "every --data bag")
     train.set_defaults(handler=_cmd_train)
 

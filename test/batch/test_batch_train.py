@@ -13,6 +13,7 @@ import pytest
 from selfcontra_ros.batch.train import batch_train
 from selfcontra_ros.cli import main
 from selfcontra_ros.confidence.commands import collect_samples, train_command
+from selfcontra_ros.confidence.forest import load_model
 from selfcontra_ros.errors import BatchError
 
 #: a small forest: the test compares models, it does not need a good one
@@ -88,3 +89,6 @@ def test_the_batch_train_command(
     assert "left out (no complete label result" in printed and "corrupt" in printed
     assert re.search(r"trained gcp forest on 60 samples from \d+ frames of 1 input\(s\)", printed)
     assert (tmp_path / "cli.npz").is_file()
+    assert load_model(tmp_path / "cli.npz").metadata["forest"]["random_state"] == 0  # FOREST's
+    assert main([*args, "--out", str(tmp_path / "seed.npz"), "--max-per-input", "60", "--forest-seed", "7"]) == 0
+    assert load_model(tmp_path / "seed.npz").metadata["forest"]["random_state"] == 7

@@ -214,3 +214,22 @@ def test_train_command_line_takes_the_share(labelled: tuple[Path, Path], tmp_pat
     assert load_model(tmp_path / "all.npz").metadata["sampling"] == {"band_negatives": 1.0, "band_look": None}
     summary = train_command([(data, "gt")], "gcp", tmp_path / "gt.npz", forest=SMALL_FOREST, matcher=MATCHER)
     assert "sampling" not in load_model(summary["model"]).metadata  # ground truth is taken as it is
+
+
+def test_train_command_line_takes_the_forest_seed(
+    labelled: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    data, labels = labelled
+    base = ["train", "--features", "gcp", "--data", str(data), "--labels", str(labels), "--band-look", "inf"]
+    for name, seed in (("a", "3"), ("b", "3"), ("c", "4")):
+        assert main([*base, "--out", str(tmp_path / f"{name}.npz"), "--forest-seed", seed]) == 0
+    a, b, c = (load_model(tmp_path / f"{name}.npz") for name in "abc")
+    assert a.metadata["forest"]["random_state"] == 3 and c.metadata["forest"]["random_state"] == 4
+    # The same samples: one seed gives the same trees, another seed other bootstrap draws (with this few
+    # samples each tree is one leaf, whose positive share is its draw's).
+    for name in ("tree_offsets", "feature", "threshold", "positive"):
+        assert np.array_equal(getattr(a, name), getattr(b, name))
+    assert a.positive.shape != c.positive.shape or not np.array_equal(a.positive, c.positive)
+    with pytest.raises(SystemExit):
+        main([*base, "--out", str(tmp_path / "bad.npz"), "--forest-seed", "-1"])
+    assert "a forest seed is in 0 .. 2**32 - 1, not -1" in capsys.readouterr().err
