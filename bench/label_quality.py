@@ -14,7 +14,9 @@ Renders ``--scenes`` x ``--seeds`` sequences (``--frames`` frames at
   ratio self / ground truth (the paper's Table 1 comparison); with
   ``--forest-seeds N`` both forests are trained with N forest seeds and the
   figures are means, with the ratio per forest seed (the forest's own seed
-  moves one AUSC by a few percent);
+  moves one AUSC by a few percent); ``--first-forest-seed K`` makes them
+  seeds K .. K + N - 1 (one other seed alone: ``--forest-seeds 1
+  --first-forest-seed K``);
 * with ``--oracles`` too: forests trained on the self labels mended with the
   ground truth (:data:`ORACLES`: the labelled pixels' true labels; only the
   positives mended; only the negatives; the wrong positives or all wrong
@@ -182,20 +184,27 @@ def _oracle_folders(row: dict[str, Any], work: Path) -> dict[str, Path]:
     return folders
 
 
-def forest_figures(scores: dict[str, float], forest_seeds: int) -> dict[str, Any]:
+def _forest_suffix(seed: int) -> str:
+    """Model file suffix of a forest seed: none for seed 0 (the package's forest), ``_f<k>`` otherwise."""
+    return "" if seed == 0 else f"_f{seed}"
+
+
+def forest_figures(scores: dict[str, float], forest_seeds: int, first_forest_seed: int = 0) -> dict[str, Any]:
     """The summary of :func:`_confidence`'s mean AUSC / optimal per model (keyed by model file stem).
 
-    ``self`` / ``gt`` (and ``self_f1``, ``gt_f1``, ...) are the forests of each forest seed: their means are
-    ``ausc_ratio_self`` / ``ausc_ratio_gt`` and their ratios per seed ``self_over_gt_by_forest_seed``
-    (mean ``self_over_gt``); every other model (``lrd``, the oracles) keeps its own ``ausc_ratio_<name>``.
+    ``self`` / ``gt`` (and ``self_f1``, ``gt_f1``, ...) are the forests of each forest seed
+    ``first_forest_seed .. first_forest_seed + forest_seeds - 1``: their means are ``ausc_ratio_self`` /
+    ``ausc_ratio_gt`` and their ratios per seed ``self_over_gt_by_forest_seed`` (mean ``self_over_gt``);
+    every other model (``lrd``, the oracles) keeps its own ``ausc_ratio_<name>``.
     """
-    suffixes = [""] + [f"_f{k}" for k in range(1, forest_seeds)]
+    suffixes = [_forest_suffix(k) for k in range(first_forest_seed, first_forest_seed + forest_seeds)]
     # The oracles' names start with "gt_" too, so the self and ground-truth forests are named one by one.
     forests = {f"{kind}{x}" for kind in ("self", "gt") for x in suffixes}
+    # The means come last: from another first seed, seed 0's "self" / "gt" are not this run's forests.
     out: dict[str, Any] = {
+        **{f"ausc_ratio_{k}": v for k, v in scores.items() if k not in forests},
         "ausc_ratio_self": float(np.mean([scores[f"self{x}"] for x in suffixes])),
         "ausc_ratio_gt": float(np.mean([scores[f"gt{x}"] for x in suffixes])),
-        **{f"ausc_ratio_{k}": v for k, v in scores.items() if k not in forests},
     }
     by_seed = [scores[f"self{x}"] / scores[f"gt{x}"] for x in suffixes if scores.get(f"gt{x}")]
     if by_seed:
@@ -211,16 +220,17 @@ def _confidence(
     *,
     oracles: bool = False,
     forest_seeds: int = 1,
+    first_forest_seed: int = 0,
     band_share: float = float(TRAINING["band_negatives"]),
     band_look: float = float(TRAINING["band_look"]),
 ) -> dict[str, Any]:
     """Ensemble forests trained on self labels / ground truth of the first half of the seeds, scored on the rest.
 
-    With ``forest_seeds`` > 1 both forests are trained once per forest seed ``0 .. forest_seeds - 1`` (the
-    forest's ``random_state``; the sample draw stays the same) and the figures are means over them, with
-    the self / ground-truth ratio per forest seed: one forest's AUSC moves by a few percent with its seed
-    alone, which a label change must exceed to be seen. With ``oracles`` also on each :data:`ORACLES`
-    mending of the self labels (forest seed 0). ``band_share``, ``band_look``: the self forests'
+    Both forests are trained once per forest seed ``first_forest_seed .. first_forest_seed + forest_seeds -
+    1`` (the forest's ``random_state``; the sample draw stays the same) and the figures are means over them,
+    with the self / ground-truth ratio per forest seed: one forest's AUSC moves by a few percent with its
+    seed alone, which a label change must exceed to be seen. With ``oracles`` also on each :data:`ORACLES`
+    mending of the self labels (the first forest seed). ``band_share``, ``band_look``: the self forests'
     ``train --band-negatives`` / ``--band-look``; the ground-truth forest takes neither.
     """
     from selfcontra_ros.confidence.commands import evaluate_command, train_command
@@ -232,8 +242,8 @@ def _confidence(
         return {}
     folder = work / f"confidence_{scene}"
     models: list[Path | str] = []
-    for k in range(forest_seeds):
-        suffix = "" if k == 0 else f"_f{k}"
+    for k in range(first_forest_seed, first_forest_seed + forest_seeds):
+        suffix = _forest_suffix(k)
         forest = None if k == 0 else {"random_state": k}  # seed 0 is the package's forest as it is
         self_model, gt_model = folder / f"self{suffix}.npz", folder / f"gt{suffix}.npz"
         train_command(
@@ -252,7 +262,14 @@ def _confidence(
         for name in ORACLES:
             model = folder / f"{name}.npz"
             pairs = [(r["data"], m[name]) for r, m in zip(train, mended, strict=True)]
-            train_command(pairs, "ensemble", model, band_share=band_share, band_look=band_look)
+            train_command(
+                pairs,
+                "ensemble",
+                model,
+                forest=None if first_forest_seed == 0 else {"random_state": first_forest_seed},
+                band_share=band_share,
+                band_look=band_look,
+            )
             models.append(model)
     # Results are keyed by the model files' stems: "self", "gt" (and "self_f1", "gt_f1", ...), "lrd" and the
     # oracles' names.
@@ -261,7 +278,7 @@ def _confidence(
         results = evaluate_command(models, r["data"], folder / f"eval_s{r['seed']}")
         for key, values in ratios.items():
             values.append(float(results[key]["mean"]["ausc_ratio"]))
-    out = forest_figures({k: float(np.mean(v)) for k, v in ratios.items() if v}, forest_seeds)
+    out = forest_figures({k: float(np.mean(v)) for k, v in ratios.items() if v}, forest_seeds, first_forest_seed)
     out["train_seeds"] = [r["seed"] for r in train]
     out["test_seeds"] = [r["seed"] for r in test]
     return out
@@ -322,6 +339,13 @@ def main(argv: list[str] | None = None) -> int:
         help="with --confidence: train both forests with this many forest seeds and report means (default 1)",
     )
     parser.add_argument(
+        "--first-forest-seed",
+        type=int,
+        default=0,
+        metavar="K",
+        help="with --confidence: the forest seeds are K .. K + forest-seeds - 1 (default 0, the package's forest)",
+    )
+    parser.add_argument(
         "--band-negatives",
         type=float,
         default=float(TRAINING["band_negatives"]),
@@ -337,6 +361,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--threads", type=int, default=0)
     args = parser.parse_args(argv)
+    if args.forest_seeds < 1 or not 0 <= args.first_forest_seed < 2**32 - args.forest_seeds:
+        parser.error("--forest-seeds must be at least 1 and the forest seeds within 0 .. 2**32 - 1")
     limit_threads(args.threads)
 
     from selfcontra_ros.pipeline import label_sequence
@@ -388,6 +414,7 @@ def main(argv: list[str] | None = None) -> int:
                     work,
                     oracles=args.oracles,
                     forest_seeds=args.forest_seeds,
+                    first_forest_seed=args.first_forest_seed,
                     band_share=args.band_negatives,
                     band_look=args.band_look,
                 )

@@ -43,6 +43,17 @@ def test_one_forest_seed_reads_the_package_forests_only(bench: ModuleType) -> No
     assert out["ausc_ratio_self_f1"] == pytest.approx(9.0)  # not a forest seed of this run
 
 
+def test_forest_seeds_from_another_first_seed_read_their_own_forests(bench: ModuleType) -> None:
+    scores = {"self": 3.0, "gt": 2.0, "self_f1": 4.0, "gt_f1": 2.0, "self_f2": 6.0, "gt_f2": 4.0, "lrd": 7.0}
+    out = bench.forest_figures(scores, forest_seeds=2, first_forest_seed=1)
+    assert out["self_over_gt_by_forest_seed"] == pytest.approx([2.0, 1.5])
+    # Seed 0's forests ("self", "gt") are not this run's: the means are seeds 1 and 2's.
+    assert out["ausc_ratio_self"] == pytest.approx(5.0) and out["ausc_ratio_gt"] == pytest.approx(3.0)
+    assert out["ausc_ratio_lrd"] == pytest.approx(7.0)
+    with pytest.raises(SystemExit):
+        bench.main(["--confidence", "--first-forest-seed", "-1"])
+
+
 def test_a_small_run_labels_trains_every_forest_and_mends_the_oracles_labels(bench: ModuleType, tmp_path: Path) -> None:
     """End to end at 306x92 (about 10 s): render, label, train the self, ground-truth and oracle forests, plot.
 
