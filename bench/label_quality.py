@@ -361,7 +361,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--threads", type=int, default=0)
     args = parser.parse_args(argv)
-    if args.forest_seeds < 1 or not 0 <= args.first_forest_seed < 2**32 - args.forest_seeds:
+    if args.forest_seeds < 1 or not 0 <= args.first_forest_seed <= 2**32 - args.forest_seeds:
         parser.error("--forest-seeds must be at least 1 and the forest seeds within 0 .. 2**32 - 1")
     limit_threads(args.threads)
 
