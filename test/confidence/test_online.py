@@ -110,13 +110,10 @@ def test_params_are_checked() -> None:
         ConfidenceParams(band_look=float("nan"))
 
 
-def test_band_look_keeps_the_objects_own_band_pixels_out_of_the_reservoir() -> None:
-    # An object from column 80 on (bright) before a dark background; the matcher spread its disparity 6 px left.
-    rng = np.random.default_rng(1)
-    image = np.clip(np.where(np.arange(200) >= 80, 200.0, 50.0) + rng.normal(0, 5, (40, 200)), 0, 255)
-    image = image.astype(np.uint8)
-    d = np.full(image.shape, 10.0, np.float32)
-    d[:, 74:] = 30.0
+def test_band_look_keeps_the_objects_own_band_pixels_out_of_the_reservoir(
+    fattened_edge: tuple[np.ndarray, np.ndarray],
+) -> None:
+    image, d = fattened_edge  # the object from column 80 on, its disparity spread 6 px left
     frame = ConfidenceFrame(image, image, d, None, MatcherParams(num_disparities=48))
     labels = np.zeros(d.shape, np.uint8)
     labels[:, 120:190] = POSITIVE

@@ -137,17 +137,10 @@ def test_band_look_scores_fall_back_to_the_wider_window_where_the_first_is_short
     np.testing.assert_allclose(got[ok], want[ok], rtol=1e-5, atol=1e-4)
 
 
-def _fattened_edge(width: int = 200, height: int = 40, edge: int = 80, fat: int = 6) -> tuple[np.ndarray, np.ndarray]:
-    """An object from column ``edge`` on (bright) before a dark background, its disparity spread ``fat`` px left."""
-    rng = np.random.default_rng(1)
-    image = np.where(np.arange(width) >= edge, 200.0, 50.0) + rng.normal(0, 5, (height, width))
-    d = np.full((height, width), 10.0, np.float32)
-    d[:, edge - fat :] = 30.0
-    return np.clip(image, 0, 255).astype(np.uint8), d
-
-
-def test_band_negatives_look_leaves_the_objects_own_pixels_out_of_the_draw() -> None:
-    image, d = _fattened_edge()
+def test_band_negatives_look_leaves_the_objects_own_pixels_out_of_the_draw(
+    fattened_edge: tuple[np.ndarray, np.ndarray],
+) -> None:
+    image, d = fattened_edge
     labels = np.zeros(d.shape, np.uint8)
     everything = band_negatives(labels, d, 1.0, np.random.default_rng(0))  # inf: every band pixel (stop 40 on)
     band = everything == NEGATIVE
