@@ -57,7 +57,7 @@ from tqdm import tqdm
 
 from selfcontra_ros.batch.label import COMPLETE
 from selfcontra_ros.cli import parse_seeds, parse_size
-from selfcontra_ros.confidence.constants import TRAINING
+from selfcontra_ros.confidence.constants import MAX_FOREST_SEED, TRAINING
 from selfcontra_ros.datasets import SCENES
 from selfcontra_ros.datasets.synthetic import write_sequence
 from selfcontra_ros.labels import NEGATIVE, POSITIVE, UNKNOWN
@@ -365,8 +365,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--threads", type=int, default=0)
     args = parser.parse_args(argv)
-    if args.forest_seeds < 1 or not 0 <= args.first_forest_seed <= 2**32 - args.forest_seeds:
-        parser.error("--forest-seeds must be at least 1 and the forest seeds within 0 .. 2**32 - 1")
+    if args.forest_seeds < 1 or not 0 <= args.first_forest_seed <= MAX_FOREST_SEED + 1 - args.forest_seeds:
+        parser.error(f"--forest-seeds must be at least 1 and the forest seeds within 0 .. {MAX_FOREST_SEED}")
     limit_threads(args.threads)
 
     from selfcontra_ros.pipeline import label_sequence

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from selfcontra_ros import interrupts
-from selfcontra_ros.confidence.constants import FOREST, TRAINING
+from selfcontra_ros.confidence.constants import FOREST, MAX_FOREST_SEED, TRAINING
 from selfcontra_ros.datasets import SCENES
 from selfcontra_ros.errors import SelfContraError
 
@@ -353,10 +353,10 @@ def _cmd_batch_train(args: argparse.Namespace) -> int:
 
 
 def _forest_seed(text: str) -> int:
-    """``--forest-seed``: scikit-learn takes a random state in 0 .. 2**32 - 1."""
+    """``--forest-seed``: scikit-learn takes a random state in 0 .. ``MAX_FOREST_SEED`` (2**32 - 1)."""
     seed = int(text)
-    if not 0 <= seed < 2**32:
-        raise argparse.ArgumentTypeError(f"a forest seed is in 0 .. 2**32 - 1, not {seed}")
+    if not 0 <= seed <= MAX_FOREST_SEED:
+        raise argparse.ArgumentTypeError(f"a forest seed is in 0 .. {MAX_FOREST_SEED} (2**32 - 1), not {seed}")
     return seed
 
 

@@ -52,6 +52,8 @@ def test_forest_seeds_from_another_first_seed_read_their_own_forests(bench: Modu
     assert out["ausc_ratio_lrd"] == pytest.approx(7.0)
     with pytest.raises(SystemExit):
         bench.main(["--confidence", "--first-forest-seed", "-1"])
+    with pytest.raises(SystemExit):  # the second seed would be 2**32
+        bench.main(["--confidence", "--first-forest-seed", str(2**32 - 1), "--forest-seeds", "2"])
 
 
 def test_a_small_run_labels_trains_every_forest_and_mends_the_oracles_labels(bench: ModuleType, tmp_path: Path) -> None:

@@ -27,6 +27,7 @@ __all__ = [
     "FOREST",
     "GCP",
     "LRC_MISSING_PX",
+    "MAX_FOREST_SEED",
     "MEDIAN_STEP_PX",
     "MLM_SIGMA",
     "NEM_TEMPERATURE",
@@ -139,6 +140,10 @@ FEATURE_SETS: MappingProxyType[str, _Set] = MappingProxyType({"ensemble": ENSEMB
 FOREST = MappingProxyType(
     {"n_estimators": 20, "max_depth": 20, "min_samples_leaf": 100, "criterion": "entropy", "random_state": 0}
 )
+
+#: Forest seeds (``random_state``) run from 0 to this (scikit-learn's limit); ``selfcontra train --forest-seed``
+#: and the label benchmark's forest seeds check against it.
+MAX_FOREST_SEED = 2**32 - 1
 
 #: Training-set sampling: at most this many positives (and as many negatives) per image; ``seed`` of the draw;
 #: ``band_negatives``: the share of the unlabelled pixels of the query's fattening band that self labels give

@@ -225,4 +225,4 @@ def test_train_command_line_takes_the_forest_seed(
     assert a.positive.shape != c.positive.shape or not np.array_equal(a.positive, c.positive)
     with pytest.raises(SystemExit):
         main([*base, "--out", str(tmp_path / "bad.npz"), "--forest-seed", "-1"])
-    assert "a forest seed is in 0 .. 2**32 - 1, not -1" in capsys.readouterr().err
+    assert "a forest seed is in 0 .. 4294967295 (2**32 - 1), not -1" in capsys.readouterr().err
