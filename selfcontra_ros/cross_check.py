@@ -24,7 +24,7 @@ check only adds negatives where the paper's stages were silent.
 
 Measured on the label benchmark's tuning seeds 1-10 at 613x185 (forests
 trained on the self labels of seeds 1-5, scored on 6-10; figures in
-``LabelerParams.cross_check_min_difference_px`` and the README): at the
+``LabelerParams.cross_check_min_difference_px`` and ``docs/label_quality.md``): at the
 default 4 px, 85 % of the new negatives are on wrong query depth on
 ``orbit`` and 52 % on ``street``, and the Ensemble forest's self /
 ground-truth AUSC ratio went from 2.69 to 1.90 on orbit and from 1.34 to

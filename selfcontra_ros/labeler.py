@@ -154,8 +154,7 @@ class LabelerParams:
             What it costs: a pixel whose only contradiction was such an
             occlusion is unknown, or positive where positive votes remain
             (street's positive precision -0.02 points). Held-out figures
-            and the forest's in the README ("Label quality over many
-            sequences").
+            and the forest's in ``docs/label_quality.md``.
         stage2_free_space_votes: whether the Stage-2 splat casts free-space
             violation votes (paper and default: true). Off, a query point
             lying *behind* the references' surface is never negative in
@@ -478,7 +477,7 @@ class LabelerParams:
             14.0 (accuracy / coverage / bad recall), room 95.88 / 32.83 /
             39.8 -> 96.05 / 32.60 / 39.4 -> 96.33 / 32.11 / 38.6. Each step
             buys accuracy with a point of bad recall (negatives the forest
-            learns from); 3 was not taken for that reason (see the README).
+            learns from); 3 was not taken for that reason (``docs/label_quality.md``).
             What it costs the forest trained on the labels, held out at
             1226x370 (seeds 11-20; Ensemble trained on 11-15, scored on
             16-20; self / ground-truth AUSC ratio), 0 -> 2: orbit 1.994 ->
@@ -520,7 +519,7 @@ class LabelerParams:
             with ``matcher.algorithm: external``) and costs a census SGM run
             and a second labeling per view, and held out at 1226x370 the
             forest did not gain (orbit seeds 21-30: ratio 1.968 -> 1.939,
-            bad recall 7.2 -> 12.0 %; figures in the README), so it is off
+            bad recall 7.2 -> 12.0 %; figures in ``docs/label_quality.md``), so it is off
             by default.
         cross_check_min_difference_px: pixels; see ``cross_check_matcher``.
             Default 4. Tuning seeds 1-10 at 613x185, 3 / 4 / 5 / 7 px (share

@@ -149,15 +149,14 @@ MAX_FOREST_SEED = 2**32 - 1
 #: ``band_negatives``: the share of the unlabelled pixels of the query's fattening band that self labels give
 #: the draw as negatives (:func:`~selfcontra_ros.confidence.training.band_negatives`; 0 = the paper);
 #: ``band_look``: of those, the ones whose look (:func:`~selfcontra_ros.confidence.training.band_look_scores`)
-#: is at least this stay out of the draw (``inf``: every one is drawn, as before the look; -1 measured in the
-#: README, "Label quality over many sequences").
+#: is at least this stay out of the draw (``inf``: every one is drawn, as before the look; -1 measured in
+#: ``docs/label_quality.md``).
 TRAINING = MappingProxyType({"max_per_class": 10000, "seed": 0, "band_negatives": 1.0, "band_look": -1.0})
 
 #: The look of a band pixel (:func:`~selfcontra_ros.confidence.training.band_look_scores`): windows (rows,
 #: columns) tried in turn until both sets are large enough, fewest pixels in each set, and the side of the
 #: Gaussian that smooths the grey image. A 17x81 window after the 9x49 one scores more pixels and gained
-#: 2-3 % on the synthetic scenes but cost 3-4 % on the real pairs (README, "Label quality over many
-#: sequences"): one window.
+#: 2-3 % on the synthetic scenes but cost 3-4 % on the real pairs (``docs/label_quality.md``): one window.
 BAND_LOOK_WINDOWS: tuple[tuple[int, int], ...] = ((9, 49),)
 BAND_LOOK_MIN_COUNT: int = 5
 BAND_LOOK_SMOOTHING: int = 3
