@@ -189,11 +189,6 @@ def _forest_suffix(seed: int) -> str:
     return "" if seed == 0 else f"_f{seed}"
 
 
-def _forest_overrides(seed: int) -> dict[str, int] | None:
-    """``train_command``'s ``forest`` for a forest seed: none for seed 0 (the package's forest as it is)."""
-    return None if seed == 0 else {"random_state": seed}
-
-
 def forest_figures(scores: dict[str, float], forest_seeds: int, first_forest_seed: int = 0) -> dict[str, Any]:
     """The summary of :func:`_confidence`'s mean AUSC / optimal per model (keyed by model file stem).
 
@@ -248,7 +243,7 @@ def _confidence(
     folder = work / f"confidence_{scene}"
     models: list[Path | str] = []
     for k in range(first_forest_seed, first_forest_seed + forest_seeds):
-        suffix, forest = _forest_suffix(k), _forest_overrides(k)
+        suffix, forest = _forest_suffix(k), {"random_state": k}  # merged into FOREST: seed 0 is its own
         self_model, gt_model = folder / f"self{suffix}.npz", folder / f"gt{suffix}.npz"
         train_command(
             [(r["data"], r["labels"]) for r in train],
@@ -270,7 +265,7 @@ def _confidence(
                 pairs,
                 "ensemble",
                 model,
-                forest=_forest_overrides(first_forest_seed),
+                forest={"random_state": first_forest_seed},
                 band_share=band_share,
                 band_look=band_look,
             )
