@@ -255,7 +255,8 @@ def run_sequence(
 
     runs = run_passes(run_pass, params)  # as estimate_poses runs them
     vo, passes = runs[-1], len(runs)
-    first_offset = runs[0].disparity_offset  # the first pass's; the later ones estimate again around it (README)
+    # The first pass's offset; the later ones estimate again around it (docs/visual_odometry.md).
+    first_offset = runs[0].disparity_offset
     # The last pass that estimated the offset (the first when none did: no windows, NaN).
     estimating = next((r for r in reversed(runs) if r.params.estimate_disparity_offset), runs[0])
     estimate, error, windows = estimating.offset_estimate()

@@ -3,7 +3,7 @@
 A stereo odometry's scale comes from its features' disparities. On a
 highway most corners are far (1-3 px of disparity), so a bias of a tenth of
 a pixel moves a step by several percent, and the step lengths of whole runs
-of frames come out short together (README, "Stereo visual odometry"). The
+of frames come out short together (docs/visual_odometry.md). The
 road in front of the car is the one surface that is always near: 6-25 m on
 a KITTI-like rig, 15-65 px of disparity. It gives the step's length
 independently of the features:
@@ -55,7 +55,7 @@ F64 = NDArray[np.float64]
 @dataclass(frozen=True)
 class GroundParams:
     """How the road is found and aligned (the defaults were set by looking at a few synthetic highway, orbit
-    and street sequences and KITTI 06, not by a sweep: README, "Stereo visual odometry", fourteenth round).
+    and street sequences and KITTI 06, not by a sweep: docs/visual_odometry.md, fourteenth round).
 
     Attributes:
         top_margin: the region searched starts this share of the image

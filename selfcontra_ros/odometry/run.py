@@ -182,7 +182,8 @@ def next_pass_params(vo: StereoOdometry, run_params: VOParams, params: VOParams)
     2. Otherwise the sequence is run again estimating, from the first pass's offset. The first pass chose
        its features (the gates on disparity change and reprojection error, the tracks the offset estimate
        keeps) under the offset it had, mostly the configured one, which pulls its estimate towards it: a
-       simulated 0.3 px read +0.11 to +0.24 px; estimated again around that, +0.21 to +0.29 px (README).
+       simulated 0.3 px read +0.11 to +0.24 px; estimated again around that, +0.21 to +0.29 px
+       (docs/visual_odometry.md).
     3. That pass's estimate (the mean of its windows; its starting offset with fewer than
        ``offset_min_windows``) is applied from the first frame on, estimation off: the final pass.
     """

@@ -171,7 +171,7 @@ class VOParams:
             2.07 % and, held out, seed 59 90 %; 21x5 0.79 % (1.15, 4.06),
             4 / 534 but street 0.26 -> 0.33 % (worst 0.86); 7x7 1.28 %
             (2.91, 7.20), 13 / 487. Held out (seeds 41-100, KITTI 06, street,
-            orbit): the README's fifth round.
+            orbit): docs/visual_odometry.md, fifth round.
         length_gate_sigmas: a ``weak_scale`` step whose length lies further
             than this many standard deviations (of the innovation) from the
             smoother's prediction is left out of :func:`smooth_step_lengths`
@@ -198,7 +198,7 @@ class VOParams:
             finds about +0.2 px (disparities too small), which took the
             translation error from 1.37 to 0.83 % and the scale error from
             +1.05 to +0.30 %; on the synthetic scenes, whose disparities have
-            no offset, it stays at 0 on most sequences, not all (README).
+            no offset, it stays at 0 on most sequences, not all (docs/visual_odometry.md).
         offset_inlier_px: tracks with a residual above this after the
             adjustment are left out of the offset estimate.
         offset_step_px: the disparity shift ``h`` of the estimate's parabola.
@@ -219,7 +219,7 @@ class VOParams:
             offset (-0.13 px; 0.95 -> 1.72 % and 1.10 -> 2.44 % with it), and
             a simulated 0.3 px offset is estimated a little closer (highway
             1-10: +0.19 -> +0.20 px on average, 1.37 -> 1.25 %); KITTI 06 and
-            the synthetic sequences without offset are unchanged (README).
+            the synthetic sequences without offset are unchanged (docs/visual_odometry.md).
             0.5 and 2 px did worse on the shifted tuning highways 1-30
             (1.53 and 1.61 % against 1.45 % without seed 12).
         offset_window_std_px: a window's estimate counts only when the
@@ -236,7 +236,8 @@ class VOParams:
             before); KITTI 06, street and the shifted highways 1-30 are
             unchanged, the highways 1-30, 41-100 and 101-130 but for seeds 11
             (1.55 -> 1.54 %) and 87 (2.26 -> 1.43 %). 0.05 px lost shifted
-            highways (2.69 -> 2.77 %), 0.2 px let seed 4's offset back (README).
+            highways (2.69 -> 2.77 %), 0.2 px let seed 4's offset back
+            (docs/visual_odometry.md).
         offset_max_windows: the estimate is the mean of the latest this many
             windows (0: of every window since the start). A mean over all of
             them gets an ever smaller standard error the longer the node
@@ -353,7 +354,7 @@ class VOParams:
             highway, tuning seeds 1-30 with and without a simulated 0.3 px
             offset, 2 frames take 42 of 965 reliable frames and 9 of their
             40 bad ones (more than 2 % off); held-out seeds 41-100, 53 of 860
-            and 17 of 23 (README). Offline :func:`mark_isolated` applies it
+            and 17 of 23 (docs/visual_odometry.md). Offline :func:`mark_isolated` applies it
             (:func:`~selfcontra_ros.odometry.run.estimate_poses`, after the
             smoother); the node's
             :class:`~selfcontra_ros.odometry.run.OnlineOdometry` applies it as
@@ -394,7 +395,7 @@ class VOParams:
             moves the road's by a fraction of one. The features' checks
             decide as without it; the smoothed lengths change, and with
             the spread the frames reported ``uncertain`` (fewer). See the
-            README ("Stereo visual odometry", fourteenth round).
+            docs/visual_odometry.md, fourteenth round.
         road_noise_pct: standard deviation of a road step length, percent of
             the step (measured mean absolute errors, per sequence: 0.15-0.7 %
             on highway seeds 78, 97 and 12, 0.3-0.4 % on orbit seeds 1 and
@@ -417,7 +418,7 @@ class VOParams:
             as the features' (30 mdeg against GPS/INS), the directions a
             little better. Where the features failed (a truck filling the
             view) the road's motion replaces a constant-velocity guess.
-            Translation errors, off -> on (README, fifteenth round):
+            Translation errors, off -> on (docs/visual_odometry.md, fifteenth round):
             highway 1-30 0.40 -> 0.14 %, 41-100 0.46 -> 0.21 % (with every
             change of that round 0.18 %), street 0.14 -> 0.05 %, orbit
             0.36 -> 0.18 %, KITTI 06 0.77 -> 0.73 % (its rotation error
@@ -433,7 +434,7 @@ class VOParams:
             mean, replayed from one run's poses): lag 0 (the filter alone)
             16, 1.01 %; 1: 10; 2: 5; 3: 3, 0.86 %; 5: 3, 0.83 %; 10: 2,
             0.81 %; the whole sequence (offline) 2, 0.80 %. The node itself
-            with 5 (README, ninth round): 5 of 463, 0.83 %, against 20 of
+            with 5 (docs/visual_odometry.md, ninth round): 5 of 463, 0.83 %, against 20 of
             484 and 1.25 % before (no smoothing, no ``isolated``); held-out
             seeds 41-100 8 of 750 (48 of 800 before). Each frame of lag
             delays the node's labels by one frame.
@@ -494,7 +495,7 @@ class VOParams:
             measured a frame again). A tolerance that grows with the
             prediction's age instead let a vehicle moving slower than the
             camera through first (street seed 7: a reliable step 130 %
-            off). See the README.
+            off). See docs/visual_odometry.md.
     """
 
     features: int = 2000
