@@ -394,7 +394,7 @@ class VOParams:
             disparity bias, which moves a feature step by several percent,
             moves the road's by a fraction of one. The features' checks
             decide as without it; the smoothed lengths change, and with
-            the spread the frames reported ``uncertain`` (fewer). See the
+            the spread the frames reported ``uncertain`` (fewer). See
             docs/visual_odometry.md, fourteenth round.
         road_noise_pct: standard deviation of a road step length, percent of
             the step (measured mean absolute errors, per sequence: 0.15-0.7 %
