@@ -22,7 +22,7 @@ from selfcontra_ros.geometry import StereoCamera, invert_pose
 from selfcontra_ros.matching.census import popcount
 from selfcontra_ros.uncertainty import largest_covariance_eigenvalue, mean_camera_centre
 
-__all__ = ["View", "ViewWindow", "make_view", "support_count"]
+__all__ = ["View", "ViewWindow", "make_view", "saturated_pixels", "support_count"]
 
 
 @dataclass(eq=False)
@@ -43,6 +43,8 @@ class View:
         support_bits: Stage-1 angular bins activated per pixel (bit ``k`` = bin ``k``).
         reliable: pixels whose match is not ambiguous (see :func:`ambiguous_pixels`): only these vote
             as references in Stage 2 and may be labelled positive. All true when no cue is enabled.
+        clipped: pixels whose left-image grey value is saturated (see :func:`saturated_pixels`): never
+            labelled positive whatever the votes; None when the cue is off or the view came without image.
         labelled: whether labels for this view have been produced.
         bands: the view's fattening bands (flat bool) by ``(jump_px, occluded_side_px, other_px)``, computed
             once by Stage 2 (:func:`selfcontra_ros.stages.voting.view_band`) for the view as query and as
@@ -62,6 +64,7 @@ class View:
     support_bits: NDArray[np.uint64]
     reliable: NDArray[np.bool_]
     labelled: bool = field(default=False)
+    clipped: NDArray[np.bool_] | None = field(default=None, repr=False)
     bands: dict[tuple[float, int, int], NDArray[np.bool_]] = field(default_factory=dict, repr=False)
 
     def from_view(self, other: View) -> NDArray[np.float64]:
@@ -79,10 +82,12 @@ def make_view(
     stamp: float,
     sigma_px: float,
     reliable: NDArray[np.bool_] | None = None,
+    clipped: NDArray[np.bool_] | None = None,
 ) -> View:
     """Build a :class:`View` from a disparity map (HxW, pixels) and its pose (4x4 ``T_world_left``).
 
     ``reliable`` (HxW) marks the pixels whose match is trusted; None trusts every valid pixel.
+    ``clipped`` (HxW) marks the pixels that may never be labelled positive (saturated ones); None: none.
     """
     disp = np.asarray(disparity, dtype=np.float32)
     valid = (np.isfinite(disp) & (disp > 0)).ravel()
@@ -102,6 +107,7 @@ def make_view(
         u=u.astype(np.float32),
         support_bits=np.zeros(valid.size, dtype=np.uint64),
         reliable=valid.copy() if reliable is None else (np.asarray(reliable, dtype=bool).ravel() & valid),
+        clipped=None if clipped is None else np.asarray(clipped, dtype=bool).ravel().copy(),
     )
 
 
@@ -155,6 +161,18 @@ def ambiguous_pixels(
         with np.errstate(invalid="ignore"):
             ambiguous |= valid & (high - low > edge_px)
     return ambiguous
+
+
+def saturated_pixels(image: NDArray[np.uint8], level: float) -> NDArray[np.bool_]:
+    """Pixels whose grey value (of ``image``, HxW grey or HxWx3 RGB, 8 bit) is at least ``level`` (HxW bool).
+
+    A clipped pixel says only that the scene there is at least as bright as the
+    sensor's full scale: its own value constrains no match, so the disparity it
+    gets comes from the texture of its neighbours (the edge of a window onto a
+    bright outside, matched at the wall's depth), and every view repeats it.
+    """
+    grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+    return np.asarray(grey) >= level
 
 
 def support_count(bits: NDArray[np.uint64]) -> NDArray[np.uint8]:

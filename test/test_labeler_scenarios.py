@@ -75,7 +75,9 @@ ANGLES = (-36.0, -24.0, -12.0, 0.0, 12.0, 24.0, 36.0)
 MIDDLE = 3
 PARAMS = LabelerParams(window_size=7, label_delay=3)
 #: Without the ambiguity cues (the paper's votes), for the tests of those cues.
-PAPER = LabelerParams(window_size=7, label_delay=3, ambiguity_min_texture=0.0, ambiguity_edge_px=0.0)
+PAPER = LabelerParams(
+    window_size=7, label_delay=3, ambiguity_min_texture=0.0, ambiguity_edge_px=0.0, ambiguity_saturation=0.0
+)
 
 
 def _middle_result(disparities: list[np.ndarray], poses: list[np.ndarray], params: LabelerParams) -> LabelResult:
@@ -220,12 +222,12 @@ def test_invalid_stage2_options_are_rejected_by_name(field: str, value: object) 
         LabelerParams.from_dict({field: value})
 
 
-def _textured_image(flat: tuple[slice, slice] | None = None) -> np.ndarray:
-    """A strongly textured grey image, optionally with one perfectly flat rectangle."""
+def _textured_image(flat: tuple[slice, slice] | None = None, value: int = 128) -> np.ndarray:
+    """A strongly textured grey image, never clipped (0-254), optionally with one flat rectangle of ``value``."""
     rng = np.random.default_rng(0)
-    image = rng.integers(0, 256, (CAMERA.height, CAMERA.width)).astype(np.uint8)
+    image = rng.integers(0, 255, (CAMERA.height, CAMERA.width)).astype(np.uint8)
     if flat is not None:
-        image[flat] = 128
+        image[flat] = value
     return image
 
 
@@ -255,6 +257,42 @@ def test_ambiguous_query_pixels_abstain_from_positives(arc: tuple[list[np.ndarra
     outside = np.ones(result.labels.shape, dtype=bool)
     outside[36:84, 46:114] = False
     assert np.array_equal(result.labels[outside], plain.labels[outside])
+
+
+def test_saturated_query_pixels_are_never_positive(arc: tuple[list[np.ndarray], list[np.ndarray]]) -> None:
+    # A clipped (255) rectangle in the middle view, its depth right and confirmed by every textured reference: the
+    # texture cue alone lets it be positive (ambiguous pixels only stop voting by default); the saturation cue not.
+    disparities, poses = arc
+    white = (slice(40, 80), slice(50, 110))
+    images = [_textured_image(white if i == MIDDLE else None, value=255) for i in range(len(poses))]
+    result = _run_with_images(disparities, poses, images, PARAMS)
+    plain = _run_with_images(disparities, poses, images, dataclasses.replace(PARAMS, ambiguity_saturation=0.0))
+    assert PARAMS.ambiguity_saturation == 255.0
+    assert np.mean(plain.labels[white] == POSITIVE) > 0.9
+    assert not np.any(result.labels[white] == POSITIVE)
+    assert not np.any(result.stage2_labels[white] == POSITIVE)
+    assert not np.any(result.labels[white] == NEGATIVE)  # right depth: abstains, not contradicted
+    # Elsewhere nothing changes: the references are never clipped, so they vote as before.
+    outside = np.ones(result.labels.shape, dtype=bool)
+    outside[white] = False
+    assert np.array_equal(result.labels[outside], plain.labels[outside])
+    # One view of 254 (not clipped at the default level) changes nothing; a level of 254 clips it.
+    images254 = [_textured_image(white if i == MIDDLE else None, value=254) for i in range(len(poses))]
+    assert np.array_equal(_run_with_images(disparities, poses, images254, PARAMS).labels, plain.labels)
+    at254 = dataclasses.replace(PARAMS, ambiguity_saturation=254.0)
+    assert not np.any(_run_with_images(disparities, poses, images254, at254).labels[white] == POSITIVE)
+
+
+def test_saturated_references_cast_no_vote(arc: tuple[list[np.ndarray], list[np.ndarray]]) -> None:
+    # Only the saturation cue on: references clipped everywhere cast no vote; at level 0 (off) they do.
+    disparities, poses = arc
+    clipped = np.full((CAMERA.height, CAMERA.width), 255, np.uint8)
+    images = [_textured_image() if i == MIDDLE else clipped for i in range(len(poses))]
+    result = _run_with_images(disparities, poses, images, dataclasses.replace(PAPER, ambiguity_saturation=255.0))
+    assert not np.any(result.vote_sum != 0)
+    assert not np.any(result.stage2_labels != UNKNOWN)
+    off = _run_with_images(disparities, poses, images, PAPER)
+    assert np.mean(off.stage2_labels == POSITIVE) > 0.5
 
 
 def test_ambiguous_references_cast_no_vote(arc: tuple[list[np.ndarray], list[np.ndarray]]) -> None:

@@ -136,6 +136,8 @@ def test_params_validation_and_from_dict() -> None:
         {"stage3_tolerance": "x"},
         {"window_size": 4.5},
         {"keyframe_min_translation": -1.0},
+        {"ambiguity_saturation": 256.0},
+        {"ambiguity_saturation": -1.0},
     ):
         with pytest.raises(ValueError, match="LabelerParams"):
             LabelerParams.from_dict(bad)
@@ -167,3 +169,18 @@ def test_ambiguous_pixels_match_a_brute_force_reference() -> None:
         ambiguous_pixels(disparity, None, min_texture=1.5, texture_window=5, edge_px=4.0),
         ambiguous_pixels(disparity, image, min_texture=0.0, texture_window=5, edge_px=4.0),
     )
+
+
+def test_saturated_pixels_are_those_at_or_above_the_level() -> None:
+    from selfcontra_ros.window import saturated_pixels
+
+    grey = np.array([[0, 250, 254], [255, 255, 128]], np.uint8)
+    assert np.array_equal(saturated_pixels(grey, 255), grey == 255)
+    assert np.array_equal(saturated_pixels(grey, 250), grey >= 250)
+    # RGB: the grey value decides (a pure red 255 is grey 76, not clipped; white is).
+    rgb = np.zeros((2, 3, 3), np.uint8)
+    rgb[0, 0] = (255, 0, 0)
+    rgb[1, 2] = (255, 255, 255)
+    expected = np.zeros((2, 3), bool)
+    expected[1, 2] = True
+    assert np.array_equal(saturated_pixels(rgb, 255), expected)

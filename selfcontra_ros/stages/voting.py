@@ -502,6 +502,8 @@ def consistency_voting(
         positive |= ~full_voted & (fallback >= fallback_min_views) & query.reliable
     if abstain_ambiguous:
         positive &= query.reliable  # an ambiguous match abstains from positives
+    if query.clipped is not None:
+        positive &= ~query.clipped  # a saturated pixel's match comes from its neighbours' texture
     if min_query_support > 0:
         positive &= support_count(query.support_bits) >= min_query_support
     positive &= ~query_band
