@@ -376,7 +376,8 @@ def consistency_voting(
         negative_sigma: a lookup votes for an occlusion only beyond this many standard deviations; ``None`` =
             ``sigma_max`` (the paper). Between the two: no vote. Free-space violations keep ``sigma_max``.
         abstain_ambiguous: query pixels the view marks unreliable (``View.reliable``) are never positive;
-            false: only the references' unreliable pixels are left out (they never vote).
+            false: only the references' unreliable pixels are left out (they never vote). Query pixels the
+            view marks clipped (``View.clipped``, saturated grey values) are never positive either way.
         free_space_band: with ``edge_jump_px > 0``, a reference point in the reference's own
             :func:`fattening_band` is left out of the free-space z-buffer (it is the reference's foreground
             fattening, floating in front of correct background); false = the paper.
