@@ -622,10 +622,11 @@ class LabelerParams:
             97.79 / 37.65 / 99.60 / 96.0 (99.10), where 99.8 % of the
             positives at 255 were wrong; tuning room 1-10 97.24 / 38.65 /
             99.59 -> 97.25 / 38.65 / 99.61; orbit 1-10 the same but for
-            seed 4's coverage (-0.01 point); street has no pixel at 255.
+            seed 4's coverage and negative precision (-0.01 point each);
+            street has no pixel at 255.
             Cost on real data: KITTI 06's positive share 33.17 -> 32.39 %,
             and the Ensemble forest trained on those labels 1.2 % (KITTI
-            2015) and 2.0 % (Middlebury) worse (AUSC, mean of three forest
+            2015) and 1.9 % (Middlebury) worse (AUSC, mean of three forest
             seeds). See ``docs/label_quality.md``.
         ambiguity_edge_px: pixels; a pixel whose disparity varies by more than
             this within its 3x3 neighbourhood (a depth edge, where a lookup
