@@ -22,6 +22,7 @@ from numpy.typing import NDArray
 from selfcontra_ros.errors import SelfContraError
 from selfcontra_ros.geometry import StereoCamera
 from selfcontra_ros.labels import NEGATIVE, UNKNOWN
+from selfcontra_ros.matching.base import to_grey
 from selfcontra_ros.stages._common import TOLERANCES
 from selfcontra_ros.stages.outliers import READINGS, augmented_depth, outlier_negatives, trivial_outliers
 from selfcontra_ros.stages.support import MAX_BINS, update_support
@@ -924,19 +925,20 @@ class Labeler:
         p = self.params
         if image is not None and np.asarray(image).shape[:2] != shape:
             raise SelfContraError(f"image has shape {np.asarray(image).shape}; expected {shape} (as the disparity)")
+        grey = None if image is None else to_grey(image)  # once for both cues
         reliable = None
         if p.ambiguity_min_texture > 0 or p.ambiguity_edge_px > 0:
             reliable = ~ambiguous_pixels(
                 disp,
-                image,
+                grey,
                 min_texture=p.ambiguity_min_texture,
                 texture_window=p.ambiguity_texture_window,
                 edge_px=p.ambiguity_edge_px,
                 texture_measure=p.ambiguity_texture_measure,
             )
         clipped = None
-        if image is not None and p.ambiguity_saturation > 0:
-            clipped = saturated_pixels(image, p.ambiguity_saturation)
+        if grey is not None and p.ambiguity_saturation > 0:
+            clipped = saturated_pixels(grey, p.ambiguity_saturation)
             reliable = ~clipped if reliable is None else reliable & ~clipped
         view = make_view(
             self.camera,

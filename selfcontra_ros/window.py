@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from selfcontra_ros.geometry import StereoCamera, invert_pose
+from selfcontra_ros.matching.base import to_grey
 from selfcontra_ros.matching.census import popcount
 from selfcontra_ros.uncertainty import largest_covariance_eigenvalue, mean_camera_centre
 
@@ -142,8 +143,7 @@ def ambiguous_pixels(
     d = np.asarray(disparity, dtype=np.float32)
     ambiguous = np.zeros(d.shape, dtype=bool)
     if image is not None and min_texture > 0:
-        grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
-        g = grey.astype(np.float64)  # float64: the variance is a small difference of large sums
+        g = to_grey(image).astype(np.float64)  # float64: the variance is a small difference of large sums
         size = (int(texture_window), int(texture_window))
         if texture_measure == "gradient_x":
             gx = np.zeros_like(g)
@@ -171,8 +171,7 @@ def saturated_pixels(image: NDArray[np.uint8], level: float) -> NDArray[np.bool_
     gets comes from the texture of its neighbours (the edge of a window onto a
     bright outside, matched at the wall's depth), and every view repeats it.
     """
-    grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
-    return np.asarray(grey) >= level
+    return to_grey(image) >= level
 
 
 def support_count(bits: NDArray[np.uint64]) -> NDArray[np.uint8]:
