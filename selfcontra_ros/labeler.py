@@ -437,8 +437,8 @@ class LabelerParams:
             for the fattening band (default 4; 0 = the paper, no band): no
             Stage-2 positive label on a pixel whose disparity exceeds by
             more than this a valid disparity up to
-            ``stage2_edge_occluded_side_px`` (default 16) columns to its
-            left or ``stage2_edge_other_px`` (default 3) pixels to its right,
+            ``stage2_edge_occluded_side_px`` (default 20) columns to its
+            left or ``stage2_edge_other_px`` (default 4) pixels to its right,
             above or below (:func:`selfcontra_ros.stages.voting.fattening_band`).
             Deviation from the paper, against foreground fattening: a
             window-based matcher spreads an object's disparity onto the

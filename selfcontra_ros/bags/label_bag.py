@@ -646,7 +646,11 @@ def label_bag(
         }
         status = "failed"
         run: _BagLabeler | None = None
-        confidence = None if external else OnlineConfidence(confidence_params, background=False, log=_LOG.info)
+        confidence = (
+            None
+            if external
+            else OnlineConfidence(confidence_params, background=False, log=_LOG.info, labeler=labeler_params)
+        )
         try:
             with BagWriter(out_bag, compress="zstd", custom_data=custom) as writer:
                 run = _BagLabeler(

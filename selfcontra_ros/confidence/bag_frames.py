@@ -45,9 +45,11 @@ from selfcontra_ros.bags import topics
 from selfcontra_ros.bags.reader import Bag, BagError, is_bag, open_bag
 from selfcontra_ros.bags.stereo_input import NAMESPACE_KEY, SYNC_KEY, ImageError, StereoImages, StereoInput
 from selfcontra_ros.bags.sync import StampSynchronizer
+from selfcontra_ros.confidence.training import band_labeler
 from selfcontra_ros.datasets.kitti import StereoFrame
 from selfcontra_ros.errors import CalibrationError, ConversionError, SelfContraError
 from selfcontra_ros.geometry import StereoCamera
+from selfcontra_ros.labeler import LabelerParams
 from selfcontra_ros.labels import NEGATIVE
 from selfcontra_ros.matching.base import MatcherParams
 from selfcontra_ros.ros.conversions import disparity_from_message, image_to_numpy, stamp_to_nanoseconds
@@ -256,11 +258,14 @@ class BagLabels:
         path: the bag.
         images: stamp (ns) -> PNG-encoded mono8 label image (PNG keeps a long bag's labels small in memory).
         matcher: the query algorithm's parameters from the bag's ``metrics.json``, or None without them.
+        labeler: the labeler's fattening band from the same file
+            (:func:`~selfcontra_ros.confidence.training.band_labeler`), or None without it.
     """
 
     path: Path
     images: dict[int, bytes]
     matcher: MatcherParams | None
+    labeler: LabelerParams | None = None
 
     def __contains__(self, stamp_ns: object) -> bool:
         return stamp_ns in self.images
@@ -309,13 +314,14 @@ def read_bag_labels(path: Path | str, *, namespace: str | None = None) -> BagLab
             if not ok:
                 raise BagError(f"bag {path}: the label image at {stamp_ns} ns cannot be encoded")
             images[stamp_ns] = png.tobytes()
-    matcher = None
+    matcher = labeler = None
     metrics = path / "metrics.json"  # label-bag writes it inside the bag folder; a bare .mcap has none
     if path.is_dir() and metrics.is_file():
         try:
-            params = json.loads(metrics.read_text()).get("params", {}).get("matcher")
-        except (OSError, ValueError, AttributeError) as exc:
+            recorded = json.loads(metrics.read_text()).get("params", {})
+            if isinstance(recorded.get("matcher"), dict):
+                matcher = MatcherParams(**recorded["matcher"])
+            labeler = band_labeler(recorded.get("labeler"))
+        except (OSError, ValueError, AttributeError, SelfContraError) as exc:
             raise BagError(f"metrics file {metrics} of bag {path} is unreadable: {exc}") from exc
-        if isinstance(params, dict):
-            matcher = MatcherParams(**params)
-    return BagLabels(path=path, images=images, matcher=matcher)
+    return BagLabels(path=path, images=images, matcher=matcher, labeler=labeler)

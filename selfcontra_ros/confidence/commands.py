@@ -63,6 +63,7 @@ from selfcontra_ros.confidence.training import (
     Samples,
     TrainParams,
     balanced_indices,
+    band_labeler,
     band_negatives,
     frame_samples,
     merge_samples,
@@ -74,6 +75,7 @@ from selfcontra_ros.errors import DatasetError, SelfContraError
 from selfcontra_ros.evaluation.metrics import DEFAULT_THRESHOLD_PX, ground_truth_labels
 from selfcontra_ros.evaluation.plots import plot_sparsification
 from selfcontra_ros.evaluation.sparsification import DEFAULT_STEP, sparsification
+from selfcontra_ros.labeler import LabelerParams
 from selfcontra_ros.labels import NEGATIVE, POSITIVE
 from selfcontra_ros.matching.base import MatcherParams, make_matcher
 
@@ -160,6 +162,8 @@ class _LabelSource:
     folder: Path | None
     bag: BagLabels | None
     matcher: MatcherParams | None
+    #: the labeler that made the labels, as far as its fattening band goes (None: not recorded, or ``gt``).
+    labeler: LabelerParams | None = None
 
     def has_labels(self, frame: StereoFrame) -> bool:
         """Whether ``frame`` has labels, known before matching (ground truth: decided by :meth:`labels`)."""
@@ -203,21 +207,22 @@ def _label_source(labels: str | Path, data: str | Path) -> _LabelSource:
         bag = read_bag_labels(root)
         if not bag.images:
             raise SelfContraError(f"labelled bag {root} holds no label image (its labeler labelled no view)")
-        return _LabelSource(folder=None, bag=bag, matcher=bag.matcher)
+        return _LabelSource(folder=None, bag=bag, matcher=bag.matcher, labeler=bag.labeler)
     folder = root / "labels" if (root / "labels").is_dir() else root
     if not folder.is_dir():
         raise DatasetError(
             f"label folder {root} does not exist (expected a 'selfcontra label' output folder, "
             "a 'selfcontra label-bag' output bag or 'gt')"
         )
-    matcher = None
+    matcher = labeler = None
     for metrics in (root / "metrics.json", folder.parent / "metrics.json"):
         if metrics.is_file():
-            params = json.loads(metrics.read_text()).get("params", {}).get("matcher")
-            if isinstance(params, dict):
-                matcher = MatcherParams(**params)
+            recorded = json.loads(metrics.read_text()).get("params", {})
+            if isinstance(recorded.get("matcher"), dict):
+                matcher = MatcherParams(**recorded["matcher"])
+            labeler = band_labeler(recorded.get("labeler"))
             break
-    return _LabelSource(folder=folder, bag=None, matcher=matcher)
+    return _LabelSource(folder=folder, bag=None, matcher=matcher, labeler=labeler)
 
 
 def _matcher_params(sources: Sequence[_LabelSource], matcher: MatcherParams | None) -> MatcherParams:
@@ -313,7 +318,13 @@ def input_samples(
             continue
         if not source.is_ground_truth:
             label_image = band_negatives(
-                label_image, inputs.disparity, band_share, rng, image=frame.left, look=band_look
+                label_image,
+                inputs.disparity,
+                band_share,
+                rng,
+                image=frame.left,
+                look=band_look,
+                labeler=source.labeler,
             )
         labelled += 1
         ctx = FeatureContext(inputs)

@@ -75,6 +75,7 @@ from selfcontra_ros.confidence.forest import ForestModel, ModelError, load_model
 from selfcontra_ros.confidence.inputs import census_costs
 from selfcontra_ros.confidence.training import balanced_indices, band_negatives
 from selfcontra_ros.errors import SelfContraError
+from selfcontra_ros.labeler import LabelerParams
 from selfcontra_ros.labels import NEGATIVE, POSITIVE
 from selfcontra_ros.matching.base import MatcherParams, to_grey
 from selfcontra_ros.matching.census import WindowedCensusCosts
@@ -294,6 +295,8 @@ class OnlineConfidence:
         params: see :class:`ConfidenceParams`; ``model_in`` is loaded at once.
         background: run sample extraction and retraining in a trainer thread (module docstring).
         log: receives the progress messages (swaps, retrainings, failures); default: this module's logger.
+        labeler: the parameters of the labeler whose views are added; the band prior (``band_negatives``) uses
+            its fattening band's sizes. None: the default labeler's.
 
     Raises:
         ModelError: ``model_in`` cannot be read or was trained on another feature set.
@@ -305,8 +308,10 @@ class OnlineConfidence:
         *,
         background: bool = True,
         log: Callable[[str], object] | None = None,
+        labeler: LabelerParams | None = None,
     ) -> None:
         self.params = params if params is not None else ConfidenceParams()
+        self.labeler = labeler
         self._log = log if log is not None else _LOG.info
         self._lock = threading.Lock()
         self._model: ForestModel | None = None
@@ -477,6 +482,7 @@ class OnlineConfidence:
             self._draw_rng,
             image=frame.left,
             look=self.params.band_look,
+            labeler=self.labeler,
         )
         # The cheap context first: a view without both classes costs no census volume.
         at_valid = labels[frame.context(with_costs=False).valid]

@@ -17,7 +17,7 @@ pixel). Ground-truth labels are used as they are.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -36,9 +36,11 @@ from selfcontra_ros.matching.base import to_grey
 from selfcontra_ros.stages.voting import fattening_band
 
 __all__ = [
+    "BAND_KEYS",
     "Samples",
     "TrainParams",
     "balanced_indices",
+    "band_labeler",
     "band_look_scores",
     "band_negatives",
     "frame_samples",
@@ -101,6 +103,8 @@ def band_look_scores(
     band: NDArray[np.bool_],
     rows: NDArray[np.integer],
     cols: NDArray[np.integer],
+    *,
+    jump_px: float | None = None,
 ) -> NDArray[np.float32]:
     """The look of band pixels ``(rows, cols)``: like the object at their disparity (> 0) or the background (< 0).
 
@@ -118,13 +122,14 @@ def band_look_scores(
         disparity: HxW query disparity; non-finite or <= 0 is invalid.
         band: HxW fattening band of ``disparity``.
         rows, cols: (N,) band pixels to score (valid disparity).
+        jump_px: the band's disparity drop, pixels (the labeler's ``stage2_edge_jump_px``); None: the default's.
     """
     grey = to_grey(np.asarray(image)).astype(np.float32)
     if constants.BAND_LOOK_SMOOTHING > 1:
         size = constants.BAND_LOOK_SMOOTHING
         grey = np.asarray(cv2.GaussianBlur(grey, (size, size), 0), dtype=np.float32)
     rows, cols = np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
-    jump = LabelerParams().stage2_edge_jump_px
+    jump = LabelerParams().stage2_edge_jump_px if jump_px is None else float(jump_px)
     look = np.full(rows.size, np.nan, np.float32)
     pending = np.arange(rows.size)
     for window in constants.BAND_LOOK_WINDOWS:
@@ -145,6 +150,32 @@ def band_look_scores(
     return look
 
 
+#: The labeler parameters that shape the fattening band (:func:`~selfcontra_ros.stages.voting.fattening_band`).
+BAND_KEYS = ("stage2_edge_jump_px", "stage2_edge_occluded_side_px", "stage2_edge_other_px")
+
+
+def band_labeler(recorded: Mapping[str, Any] | None) -> LabelerParams | None:
+    """The labeler of a label set, as far as its fattening band goes, from its recorded parameters.
+
+    ``recorded`` is the ``labeler`` section a label folder's or labelled bag's ``metrics.json`` keeps
+    (``params.labeler``). Only the :data:`BAND_KEYS` are read, each missing one keeps its default, so that labels
+    made by another version of the package (with parameters this one does not know) still train.
+
+    Returns:
+        :class:`~selfcontra_ros.labeler.LabelerParams` with the recorded band sizes (others default), or None
+        when nothing was recorded.
+
+    Raises:
+        SelfContraError: a recorded band size that is not a valid labeler parameter.
+    """
+    if not isinstance(recorded, Mapping):
+        return None
+    try:
+        return LabelerParams.from_dict({key: recorded[key] for key in BAND_KEYS if key in recorded})
+    except (TypeError, ValueError) as exc:
+        raise SelfContraError(f"the labels' recorded fattening band is invalid: {exc}") from exc
+
+
 def band_negatives(
     label_image: NDArray[np.integer],
     disparity: NDArray[np.floating],
@@ -153,11 +184,12 @@ def band_negatives(
     *,
     image: NDArray[np.uint8] | None = None,
     look: float = float("inf"),
+    labeler: LabelerParams | None = None,
 ) -> NDArray[np.uint8]:
     """``label_image`` with the unknown pixels of the query's fattening band drawn as negatives for training.
 
     The band is the labeler's (:func:`~selfcontra_ros.stages.voting.fattening_band` of ``disparity`` with the
-    default ``stage2_edge_*`` sizes of :class:`~selfcontra_ros.labeler.LabelerParams`): the foreground side of
+    ``stage2_edge_*`` sizes of the ``labeler`` that made the labels): the foreground side of
     a disparity edge, where a window matcher fattens and where the labeler never gives a positive. The
     consistency test contradicts few of its errors (a fattened point that every nearby view fattens alike is
     confirmed by none and contradicted by none), so a forest trained on the self labels alone almost never
@@ -180,6 +212,10 @@ def band_negatives(
         rng: random generator (used only for a share strictly between 0 and 1).
         image: the left image of ``disparity`` (HxW grey or HxWx3 RGB); needed for a finite ``look``.
         look: band pixels whose look is at least this are not drawn; ``inf``: every band pixel may be.
+        labeler: the parameters of the labeler that made ``label_image`` (only its ``stage2_edge_*`` sizes are
+            used, so that the prior covers the band the labeler kept from positives); None, or a labeler
+            without a band (``stage2_edge_jump_px`` 0, the paper), draws from the default labeler's band:
+            the prior is the query's fattening, whether or not the labeler abstained there.
 
     Returns:
         HxW uint8 codes; labelled pixels are never changed.
@@ -192,7 +228,7 @@ def band_negatives(
         raise SelfContraError(f"label image {labels.shape} does not match the disparity map {np.shape(disparity)}")
     if share <= 0:
         return labels
-    p = LabelerParams()
+    p = labeler if labeler is not None and labeler.stage2_edge_jump_px > 0 else LabelerParams()
     band = fattening_band(
         np.asarray(disparity, dtype=np.float32),
         jump_px=p.stage2_edge_jump_px,
@@ -208,7 +244,7 @@ def band_negatives(
         if np.shape(image)[:2] != labels.shape:
             raise SelfContraError(f"image {np.shape(image)} does not match the disparity map {labels.shape}")
         rows, cols = np.nonzero(picked)
-        scores = band_look_scores(image, disparity, band, rows, cols)
+        scores = band_look_scores(image, disparity, band, rows, cols, jump_px=p.stage2_edge_jump_px)
         kept = scores >= look  # NaN compares False: drawn
         picked[rows[kept], cols[kept]] = False
     labels[picked] = NEGATIVE

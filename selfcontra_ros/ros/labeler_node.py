@@ -769,7 +769,12 @@ class LabelerNode(Node):
         self._external = self.matcher_params.algorithm == "external"
         if not self._external:
             try:
-                self._confidence = OnlineConfidence(self.confidence_params, background=True, log=self.get_logger().info)
+                self._confidence = OnlineConfidence(
+                    self.confidence_params,
+                    background=True,
+                    log=self.get_logger().info,
+                    labeler=self.labeler_params,
+                )
             except SelfContraError as exc:  # model_in unreadable or of another feature set
                 raise LabelerConfigError(f"confidence.model_in: {exc}") from exc
 

@@ -13,9 +13,15 @@ from selfcontra_ros.bags.label_bag import label_bag
 from selfcontra_ros.bags.reader import BagError, open_bag
 from selfcontra_ros.bags.writer import BagWriter
 from selfcontra_ros.confidence.bag_frames import BagFrame, is_bag, read_bag_labels
-from selfcontra_ros.confidence.commands import collect_samples, evaluate_command, iter_frames, train_command
+from selfcontra_ros.confidence.commands import (
+    _label_source,
+    collect_samples,
+    evaluate_command,
+    iter_frames,
+    train_command,
+)
 from selfcontra_ros.confidence.forest import load_model
-from selfcontra_ros.confidence.training import Samples
+from selfcontra_ros.confidence.training import BAND_KEYS, Samples
 from selfcontra_ros.config import load_params
 from selfcontra_ros.errors import SelfContraError
 from selfcontra_ros.matching.base import MatcherParams
@@ -27,12 +33,14 @@ MATCHER = MatcherParams(num_disparities=32)
 # A small window so that 8 frames give labelled views; no online retraining (not under test here). The
 # ambiguity cues, the references' free-space band, the hole margin and the free-space view count are off (the
 # paper's votes): on 8 tiny frames they leave too few views with both classes, and the test is about bag and
-# folder giving the same samples, not about the labels.
+# folder giving the same samples, not about the labels. The fattening band reaches 24 px left, not 20: training
+# must draw its band prior from the labels' own labeler, read from the bag's and the folder's metrics.json.
 PARAMS = (
     "labeler:\n  ros__parameters:\n"
     "    matcher: {num_disparities: 48}\n"
     "    labeler: {window_size: 6, label_delay: 3, ambiguity_min_texture: 0.0, ambiguity_edge_px: 0.0,"
-    " stage2_free_space_band: false, stage2_hole_margin_px: 0.0, stage2_free_space_min_views: 1}\n"
+    " stage2_free_space_band: false, stage2_hole_margin_px: 0.0, stage2_free_space_min_views: 1,"
+    " stage2_edge_occluded_side_px: 24}\n"
     "    confidence: {retrain_every: 1000}\n"
 )
 
@@ -82,8 +90,12 @@ def test_bag_frames_equal_the_sequence_frames(data: dict[str, Path]) -> None:
 
 def test_bag_labels_give_the_samples_of_the_label_folder(data: dict[str, Path]) -> None:
     labels = read_bag_labels(data["labelled"])
-    matcher, _ = load_params(data["params"])
+    matcher, labeler = load_params(data["params"])
     assert labels.matcher == matcher and matcher.num_disparities == 48
+    assert labels.labeler is not None and labeler.stage2_edge_occluded_side_px == 24
+    assert all(getattr(labels.labeler, key) == getattr(labeler, key) for key in BAND_KEYS)
+    folder_labeler = _label_source(data["folder"], data["sequence"]).labeler
+    assert folder_labeler is not None and folder_labeler.stage2_edge_occluded_side_px == 24
     assert len(labels.images) >= 2, "the labeler labelled too few views for the test to mean anything"
     folder_samples, folder_params = collect_samples([(data["sequence"], data["folder"])], ["gcp", "park"])
     assert folder_params == matcher

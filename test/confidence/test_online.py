@@ -21,6 +21,7 @@ from selfcontra_ros.confidence.online import (
 from selfcontra_ros.datasets.synthetic import make_scene
 from selfcontra_ros.errors import SelfContraError
 from selfcontra_ros.evaluation.metrics import ground_truth_labels
+from selfcontra_ros.labeler import LabelerParams
 from selfcontra_ros.labels import NEGATIVE, POSITIVE
 from selfcontra_ros.matching.base import MatcherParams, make_matcher
 
@@ -125,6 +126,12 @@ def test_band_look_keeps_the_objects_own_band_pixels_out_of_the_reservoir(
         seen[look] = online.reservoirs[NEGATIVE].seen
     # The band is the 20 columns from 74; its fattened 6 columns look like the background.
     assert seen[float("inf")] == 40 * 20 and seen[-1.0] == 40 * 6
+    # The band is that of the labeler whose views are added: 30 columns with a wider left reach.
+    params = ConfidenceParams(retrain_every=100, samples_per_view=5000, band_look=float("inf"), **TINY_FOREST)
+    wide = LabelerParams(stage2_edge_occluded_side_px=30)
+    online = OnlineConfidence(params, background=False, log=lambda _: None, labeler=wide)
+    online.add_labelled(frame, labels)
+    assert online.reservoirs[NEGATIVE].seen == 40 * 30
 
 
 def test_labelled_views_give_a_balanced_bounded_reservoir_and_a_forest(labelled_frames: list) -> None:

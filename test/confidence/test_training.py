@@ -18,7 +18,7 @@ from selfcontra_ros.confidence.features import FeatureContext
 from selfcontra_ros.confidence.forest import load_model
 from selfcontra_ros.confidence.inputs import query_feature_input
 from selfcontra_ros.confidence.kernels import band_look
-from selfcontra_ros.confidence.training import band_look_scores, band_negatives
+from selfcontra_ros.confidence.training import band_labeler, band_look_scores, band_negatives
 from selfcontra_ros.datasets.synthetic import write_sequence
 from selfcontra_ros.errors import SelfContraError
 from selfcontra_ros.labeler import LabelerParams
@@ -60,6 +60,70 @@ def test_band_negatives_fill_only_the_unknown_pixels_of_the_labelers_band() -> N
     assert np.array_equal(out == NEGATIVE, band & (labels == UNKNOWN) | (labels == NEGATIVE))
     assert not (out[:, -10:] != UNKNOWN).any()  # invalid disparity is never drawn
     assert np.array_equal(band_negatives(labels, d, 0.0, np.random.default_rng(0)), labels)  # 0: the paper
+
+
+def test_band_negatives_follow_the_band_of_the_labeler_that_made_the_labels() -> None:
+    d = _step()
+    labels = np.zeros(d.shape, np.uint8)
+    wide = LabelerParams(stage2_edge_occluded_side_px=32, stage2_edge_other_px=2)
+    out = band_negatives(labels, d, 1.0, np.random.default_rng(0), labeler=wide)
+    # The object's side of the edge as far as the labeler's left reach, 32 columns instead of the default 20.
+    assert (out[:, 80:112] == NEGATIVE).all() and not (out[:, 112:] == NEGATIVE).any()
+    assert not (out[:, :80] == NEGATIVE).any()
+    # A larger jump than the edge's 20 px draws nothing; a labeler without a band (the paper) draws the default's.
+    assert not band_negatives(
+        labels, d, 1.0, np.random.default_rng(0), labeler=LabelerParams(stage2_edge_jump_px=25)
+    ).any()
+    paper = LabelerParams(stage2_edge_jump_px=0.0, stage2_edge_occluded_side_px=32)
+    assert np.array_equal(
+        band_negatives(labels, d, 1.0, np.random.default_rng(0), labeler=paper),
+        band_negatives(labels, d, 1.0, np.random.default_rng(0)),
+    )
+
+
+def test_band_look_compares_with_the_background_beyond_the_labelers_jump(
+    fattened_edge: tuple[np.ndarray, np.ndarray],
+) -> None:
+    image, d = fattened_edge
+    band = fattening_band(d, jump_px=4.0, occluded_side_px=20, other_px=4)
+    rows, cols = np.nonzero(band)
+    assert np.isfinite(band_look_scores(image, d, band, rows, cols)).all()  # the background is 20 px below
+    # With a jump of 20 px or more no pixel is far enough below to be the background: no look anywhere.
+    assert np.isnan(band_look_scores(image, d, band, rows, cols, jump_px=20.0)).all()
+    labels = np.zeros(d.shape, np.uint8)
+    # So a labeler with that jump has no band at this edge; one with a jump of 19 px has it, and the look.
+    assert not band_negatives(
+        labels,
+        d,
+        1.0,
+        np.random.default_rng(0),
+        image=image,
+        look=-1.0,
+        labeler=LabelerParams(stage2_edge_jump_px=20.0),
+    ).any()
+    assert np.array_equal(
+        band_negatives(
+            labels,
+            d,
+            1.0,
+            np.random.default_rng(0),
+            image=image,
+            look=-1.0,
+            labeler=LabelerParams(stage2_edge_jump_px=19.0),
+        ),
+        band_negatives(labels, d, 1.0, np.random.default_rng(0), image=image, look=-1.0),
+    )
+
+
+def test_band_labeler_reads_only_the_recorded_band() -> None:
+    assert band_labeler(None) is None and band_labeler("not a section") is None
+    recorded = {"stage2_edge_occluded_side_px": 32, "window_size": 7, "a_key_of_another_version": 1}
+    p = band_labeler(recorded)
+    assert p is not None and p.stage2_edge_occluded_side_px == 32
+    assert p.stage2_edge_jump_px == LabelerParams().stage2_edge_jump_px  # missing: the default
+    assert p.window_size == LabelerParams().window_size  # not a band size: not read
+    with pytest.raises(SelfContraError, match="recorded fattening band"):
+        band_labeler({"stage2_edge_occluded_side_px": -3})
 
 
 def test_band_negatives_share_draws_that_share() -> None:
@@ -193,6 +257,25 @@ def test_train_draws_band_negatives_from_self_labels_only(labelled: tuple[Path, 
     assert summary["samples"] > 0 and summary["positive_share"] == pytest.approx(0.5)
     # Ground truth is used as it is (sparse ground truth leaves valid pixels unknown; they must stay out).
     assert _label_source("gt", data).is_ground_truth and not _label_source(labels, data).is_ground_truth
+
+
+def test_train_draws_from_the_band_of_the_labels_own_labeler(labelled: tuple[Path, Path], tmp_path: Path) -> None:
+    data, labels = labelled
+    assert _label_source(labels, data).labeler is None  # nothing recorded: the default band
+    wide = {"stage2_edge_occluded_side_px": 40, "stage2_edge_other_px": 6}
+    (labels / "metrics.json").write_text(json.dumps({"params": {"matcher": asdict(MATCHER), "labeler": wide}}))
+    source = _label_source(labels, data)
+    assert source.labeler is not None and source.labeler.stage2_edge_occluded_side_px == 40
+    # Training reads it: the same positives with a wider band lend more negatives, so more balanced samples.
+    narrow = {"stage2_edge_occluded_side_px": 2, "stage2_edge_other_px": 1}
+    counts = {}
+    for name, band in (("wide", wide), ("narrow", narrow)):
+        (labels / "metrics.json").write_text(json.dumps({"params": {"matcher": asdict(MATCHER), "labeler": band}}))
+        summary = train_command(
+            [(data, labels)], "gcp", tmp_path / f"{name}.npz", forest=SMALL_FOREST, band_look=float("inf")
+        )
+        counts[name] = summary["samples"]
+    assert counts["wide"] > counts["narrow"] > 0
 
 
 def test_train_command_line_takes_the_share(labelled: tuple[Path, Path], tmp_path: Path) -> None:
