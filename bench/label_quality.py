@@ -142,33 +142,42 @@ def _pct(value: float) -> str:
 
 
 #: ``--oracles``: training labels that mend one part of the self labels with the ground truth, to tell what in
-#: them costs the forest. Each maps (self label image, ground-truth label image) to the training labels.
-ORACLES: dict[str, Callable[[NDArray[np.uint8], NDArray[np.uint8]], NDArray[Any]]] = {
+#: them costs the forest. Each maps (self label image, ground-truth label image, the query's fattening band as
+#: the labeler drew it) to the training labels; the self forest's band prior then draws from what is left unknown.
+ORACLES: dict[str, Callable[[NDArray[np.uint8], NDArray[np.uint8], NDArray[np.bool_]], NDArray[Any]]] = {
     # The labelled pixels, each with its true label: what the choice of pixels costs, without label errors.
-    "gt_at_labels": lambda own, gt: np.where(own != UNKNOWN, gt, UNKNOWN),
+    "gt_at_labels": lambda own, gt, band: np.where(own != UNKNOWN, gt, UNKNOWN),
     # Only the positives mended (a wrong one becomes negative): what the wrong positives cost.
-    "gt_positives": lambda own, gt: np.where(own == POSITIVE, gt, own),
+    "gt_positives": lambda own, gt, band: np.where(own == POSITIVE, gt, own),
     # Only the negatives mended (a wrong one becomes positive): what the wrong negatives cost.
-    "gt_negatives": lambda own, gt: np.where(own == NEGATIVE, gt, own),
+    "gt_negatives": lambda own, gt, band: np.where(own == NEGATIVE, gt, own),
     # The wrong positives left out (unknown): their cost without adding negatives, which the balanced
     # draw (as many positives as negatives per image) would turn into more samples of both classes.
-    "no_wrong_positives": lambda own, gt: np.where((own == POSITIVE) & (gt == NEGATIVE), UNKNOWN, own),
+    "no_wrong_positives": lambda own, gt, band: np.where((own == POSITIVE) & (gt == NEGATIVE), UNKNOWN, own),
     # Every wrong label left out.
-    "no_wrong_labels": lambda own, gt: np.where((own != UNKNOWN) & (gt != UNKNOWN) & (gt != own), UNKNOWN, own),
+    "no_wrong_labels": lambda own, gt, band: np.where((own != UNKNOWN) & (gt != UNKNOWN) & (gt != own), UNKNOWN, own),
+    # The unlabelled pixels of the fattening band with their true labels (the rest as labelled): what a perfect
+    # band cue, in place of the band prior and its look, could reach.
+    "gt_in_band": lambda own, gt, band: np.where((own == UNKNOWN) & band, gt, own),
+    # Every unlabelled pixel with its true label, the labelled ones as they are: what any labelling signal on the
+    # pixels the consistency test leaves unknown could reach, its own errors kept.
+    "gt_at_unknown": lambda own, gt, band: np.where(own == UNKNOWN, gt, own),
 }
 
 
-def _oracle_folders(row: dict[str, Any], work: Path) -> dict[str, Path]:
-    """One label folder per :data:`ORACLES` entry for a labelled sequence, the query disparity matched again."""
+def _oracle_folders(row: dict[str, Any], work: Path, names: list[str]) -> dict[str, Path]:
+    """One label folder per :data:`ORACLES` entry in ``names`` for a labelled sequence, the query matched again."""
     import cv2
 
-    from selfcontra_ros.confidence.commands import iter_frames, training_matcher
+    from selfcontra_ros.confidence.commands import _label_source, iter_frames, training_matcher
+    from selfcontra_ros.confidence.training import prior_band
     from selfcontra_ros.evaluation.metrics import ground_truth_labels
     from selfcontra_ros.matching.base import make_matcher
 
     own_root = Path(row["labels"])
     matcher = make_matcher(training_matcher([(row["data"], own_root)]))  # the labels' own query algorithm
-    folders = {name: work / "oracles" / name / own_root.name for name in ORACLES}
+    labeler = _label_source(own_root, row["data"]).labeler  # the band prior's band: the labels' labeler's
+    folders = {name: work / "oracles" / name / own_root.name for name in names}
     for folder in folders.values():
         (folder / "labels").mkdir(parents=True, exist_ok=True)
         shutil.copy(own_root / "metrics.json", folder / "metrics.json")  # the query algorithm travels with them
@@ -178,9 +187,11 @@ def _oracle_folders(row: dict[str, Any], work: Path) -> dict[str, Path]:
         if not own_path.is_file() or frame.gt_disparity is None:
             continue  # a frame the labeler did not label (the last label_delay of a sequence)
         own = np.asarray(cv2.imread(str(own_path), cv2.IMREAD_UNCHANGED), dtype=np.uint8)
-        gt = ground_truth_labels(matcher.compute(frame.left, frame.right, with_right=False).left, frame.gt_disparity)
-        for oracle, mend in ORACLES.items():
-            cv2.imwrite(str(folders[oracle] / "labels" / name), mend(own, gt).astype(np.uint8))
+        disparity = matcher.compute(frame.left, frame.right, with_right=False).left
+        gt = ground_truth_labels(disparity, frame.gt_disparity)
+        band = prior_band(disparity, labeler)
+        for oracle in names:
+            cv2.imwrite(str(folders[oracle] / "labels" / name), ORACLES[oracle](own, gt, band).astype(np.uint8))
     return folders
 
 
@@ -218,7 +229,7 @@ def _confidence(
     rows: list[dict[str, Any]],
     work: Path,
     *,
-    oracles: bool = False,
+    oracles: list[str] | None = None,
     forest_seeds: int = 1,
     first_forest_seed: int = 0,
     band_share: float = float(TRAINING["band_negatives"]),
@@ -229,9 +240,9 @@ def _confidence(
     Both forests are trained once per forest seed ``first_forest_seed .. first_forest_seed + forest_seeds -
     1`` (the forest's ``random_state``; the sample draw stays the same) and the figures are means over them,
     with the self / ground-truth ratio per forest seed: one forest's AUSC moves by a few percent with its
-    seed alone, which a label change must exceed to be seen. With ``oracles`` also on each :data:`ORACLES`
-    mending of the self labels (the first forest seed). ``band_share``, ``band_look``: the self forests'
-    ``train --band-negatives`` / ``--band-look``; the ground-truth forest takes neither.
+    seed alone, which a label change must exceed to be seen. With ``oracles`` also on each of these
+    :data:`ORACLES` mendings of the self labels (the first forest seed). ``band_share``, ``band_look``: the
+    self forests' ``train --band-negatives`` / ``--band-look``; the ground-truth forest takes neither.
     """
     from selfcontra_ros.confidence.commands import evaluate_command, train_command
 
@@ -257,8 +268,8 @@ def _confidence(
         models += [self_model, gt_model]
     models.append("lrd")
     if oracles:
-        mended = [_oracle_folders(r, work) for r in train]
-        for name in ORACLES:
+        mended = [_oracle_folders(r, work, oracles) for r in train]
+        for name in oracles:
             model = folder / f"{name}.npz"
             pairs = [(r["data"], m[name]) for r, m in zip(train, mended, strict=True)]
             train_command(
@@ -328,8 +339,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--confidence", action="store_true", help="also train and score the Ensemble forest")
     parser.add_argument(
         "--oracles",
-        action="store_true",
-        help="also (implies --confidence) train on the self labels mended with ground truth (ORACLES)",
+        nargs="?",
+        const=",".join(ORACLES),
+        default=None,
+        metavar="NAMES",
+        help="also (implies --confidence) train on the self labels mended with ground truth: the comma-separated "
+        f"ORACLES given, or all without a value ({', '.join(ORACLES)})",
     )
     parser.add_argument(
         "--forest-seeds",
@@ -362,6 +377,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.forest_seeds < 1 or not 0 <= args.first_forest_seed <= MAX_FOREST_SEED + 1 - args.forest_seeds:
         parser.error(f"--forest-seeds must be at least 1 and the forest seeds within 0 .. {MAX_FOREST_SEED}")
+    oracles = [name for name in args.oracles.split(",") if name] if args.oracles is not None else None
+    if oracles is not None and (not oracles or set(oracles) - set(ORACLES)):
+        parser.error(f"--oracles takes names of {', '.join(ORACLES)}, not {args.oracles!r}")
     limit_threads(args.threads)
 
     from selfcontra_ros.pipeline import label_sequence
@@ -411,7 +429,7 @@ def main(argv: list[str] | None = None) -> int:
                     scene,
                     mine,
                     work,
-                    oracles=args.oracles,
+                    oracles=oracles,
                     forest_seeds=args.forest_seeds,
                     first_forest_seed=args.first_forest_seed,
                     band_share=args.band_negatives,
@@ -430,7 +448,7 @@ def main(argv: list[str] | None = None) -> int:
                             f"{scene}:   ratio per forest seed {' '.join(f'{v:.3f}' for v in spread)} "
                             f"(min {min(spread):.3f}, max {max(spread):.3f})"
                         )
-                    for name in ORACLES if args.oracles else ():
+                    for name in oracles or ():
                         print(f"{scene}:   trained on {name}: {result[f'ausc_ratio_{name}']:.3f}")
         if args.plot:
             _plot(rows, Path(args.plot))

@@ -56,6 +56,12 @@ def test_forest_seeds_from_another_first_seed_read_their_own_forests(bench: Modu
         bench.main(["--confidence", "--first-forest-seed", str(2**32 - 1), "--forest-seeds", "2"])
 
 
+def test_oracles_are_named_from_the_list(bench: ModuleType, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        bench.main(["--oracles", "gt_in_band,gt_everywhere"])
+    assert "--oracles takes names of gt_at_labels," in capsys.readouterr().err
+
+
 def test_a_small_run_labels_trains_every_forest_and_mends_the_oracles_labels(bench: ModuleType, tmp_path: Path) -> None:
     """End to end at 306x92 (about 10 s): render, label, train the self, ground-truth and oracle forests, plot.
 
@@ -92,6 +98,7 @@ def test_a_small_run_labels_trains_every_forest_and_mends_the_oracles_labels(ben
     assert max(forests["ausc_ratio_self"], forests["ausc_ratio_gt"]) < 0.5 * forests["ausc_ratio_lrd"]
     # The oracles' labels: ground truth on every pixel the labeler labelled, the unlabelled ones left alone.
     from selfcontra_ros.confidence.commands import iter_frames, training_matcher
+    from selfcontra_ros.confidence.training import prior_band
     from selfcontra_ros.evaluation.metrics import ground_truth_labels
     from selfcontra_ros.labels import UNKNOWN
     from selfcontra_ros.matching.base import make_matcher
@@ -106,10 +113,18 @@ def test_a_small_run_labels_trains_every_forest_and_mends_the_oracles_labels(ben
             continue
         own = cv2.imread(str(own_root / "labels" / name), cv2.IMREAD_UNCHANGED)
         mended = cv2.imread(str(out / "oracles" / "gt_at_labels" / "orbit_s1" / "labels" / name), cv2.IMREAD_UNCHANGED)
-        gt = ground_truth_labels(matcher.compute(frame.left, frame.right, with_right=False).left, frame.gt_disparity)
+        disparity = matcher.compute(frame.left, frame.right, with_right=False).left
+        gt = ground_truth_labels(disparity, frame.gt_disparity)
         labelled = own != UNKNOWN
         assert labelled.any() and np.array_equal(mended[labelled], gt[labelled]), name
         assert (mended[~labelled] == UNKNOWN).all(), name
+        # The unlabelled pixels with their true labels: in the band prior's band only, or all of them.
+        in_band = cv2.imread(str(out / "oracles" / "gt_in_band" / "orbit_s1" / "labels" / name), cv2.IMREAD_UNCHANGED)
+        unknown = cv2.imread(str(out / "oracles" / "gt_at_unknown" / "orbit_s1" / "labels" / name), -1)
+        band = prior_band(disparity) & ~labelled
+        assert band.any() and np.array_equal(in_band[band], gt[band]), name
+        assert np.array_equal(in_band[~band], own[~band]), name
+        assert np.array_equal(unknown[labelled], own[labelled]) and np.array_equal(unknown[~labelled], gt[~labelled])
         checked += 1
     assert checked == rows[0]["frames"]
     image = cv2.imread(str(plot))

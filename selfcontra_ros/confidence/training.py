@@ -45,6 +45,7 @@ __all__ = [
     "band_negatives",
     "frame_samples",
     "merge_samples",
+    "prior_band",
     "train",
 ]
 
@@ -176,6 +177,28 @@ def band_labeler(recorded: Mapping[str, Any] | None) -> LabelerParams | None:
         raise SelfContraError(f"the labels' recorded fattening band is invalid: {exc}") from exc
 
 
+def _band_params(labeler: LabelerParams | None) -> LabelerParams:
+    """The labeler whose band sizes the band prior uses: ``labeler``, or the defaults for None or no band."""
+    return labeler if labeler is not None and labeler.stage2_edge_jump_px > 0 else LabelerParams()
+
+
+def prior_band(disparity: NDArray[np.floating], labeler: LabelerParams | None = None) -> NDArray[np.bool_]:
+    """The fattening band the band prior draws from (:func:`band_negatives`): ``labeler``'s, or the default's.
+
+    Args:
+        disparity: HxW query disparity; non-finite or <= 0 is invalid (never in the band).
+        labeler: the labeler that made the labels (its ``stage2_edge_*`` sizes); None, or a labeler without a
+            band (``stage2_edge_jump_px`` 0), gives the default labeler's band.
+    """
+    p = _band_params(labeler)
+    return fattening_band(
+        np.asarray(disparity, dtype=np.float32),
+        jump_px=p.stage2_edge_jump_px,
+        occluded_side_px=p.stage2_edge_occluded_side_px,
+        other_px=p.stage2_edge_other_px,
+    )
+
+
 def band_negatives(
     label_image: NDArray[np.integer],
     disparity: NDArray[np.floating],
@@ -228,13 +251,8 @@ def band_negatives(
         raise SelfContraError(f"label image {labels.shape} does not match the disparity map {np.shape(disparity)}")
     if share <= 0:
         return labels
-    p = labeler if labeler is not None and labeler.stage2_edge_jump_px > 0 else LabelerParams()
-    band = fattening_band(
-        np.asarray(disparity, dtype=np.float32),
-        jump_px=p.stage2_edge_jump_px,
-        occluded_side_px=p.stage2_edge_occluded_side_px,
-        other_px=p.stage2_edge_other_px,
-    )
+    p = _band_params(labeler)
+    band = prior_band(disparity, labeler)
     picked = band & (labels == UNKNOWN)
     if share < 1:
         picked &= rng.random(labels.shape) < share
