@@ -91,28 +91,13 @@ def test_band_look_compares_with_the_background_beyond_the_labelers_jump(
     # With a jump of 20 px or more no pixel is far enough below to be the background: no look anywhere.
     assert np.isnan(band_look_scores(image, d, band, rows, cols, jump_px=20.0)).all()
     labels = np.zeros(d.shape, np.uint8)
+
+    def drawn(labeler: LabelerParams | None) -> np.ndarray:
+        return band_negatives(labels, d, 1.0, np.random.default_rng(0), image=image, look=-1.0, labeler=labeler)
+
     # So a labeler with that jump has no band at this edge; one with a jump of 19 px has it, and the look.
-    assert not band_negatives(
-        labels,
-        d,
-        1.0,
-        np.random.default_rng(0),
-        image=image,
-        look=-1.0,
-        labeler=LabelerParams(stage2_edge_jump_px=20.0),
-    ).any()
-    assert np.array_equal(
-        band_negatives(
-            labels,
-            d,
-            1.0,
-            np.random.default_rng(0),
-            image=image,
-            look=-1.0,
-            labeler=LabelerParams(stage2_edge_jump_px=19.0),
-        ),
-        band_negatives(labels, d, 1.0, np.random.default_rng(0), image=image, look=-1.0),
-    )
+    assert not drawn(LabelerParams(stage2_edge_jump_px=20.0)).any()
+    assert np.array_equal(drawn(LabelerParams(stage2_edge_jump_px=19.0)), drawn(None))
 
 
 def test_band_labeler_reads_only_the_recorded_band() -> None:
