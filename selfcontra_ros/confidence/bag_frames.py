@@ -45,7 +45,7 @@ from selfcontra_ros.bags import topics
 from selfcontra_ros.bags.reader import Bag, BagError, is_bag, open_bag
 from selfcontra_ros.bags.stereo_input import NAMESPACE_KEY, SYNC_KEY, ImageError, StereoImages, StereoInput
 from selfcontra_ros.bags.sync import StampSynchronizer
-from selfcontra_ros.confidence.training import band_labeler
+from selfcontra_ros.confidence.training import recorded_params
 from selfcontra_ros.datasets.kitti import StereoFrame
 from selfcontra_ros.errors import CalibrationError, ConversionError, SelfContraError
 from selfcontra_ros.geometry import StereoCamera
@@ -318,10 +318,7 @@ def read_bag_labels(path: Path | str, *, namespace: str | None = None) -> BagLab
     metrics = path / "metrics.json"  # label-bag writes it inside the bag folder; a bare .mcap has none
     if path.is_dir() and metrics.is_file():
         try:
-            recorded = json.loads(metrics.read_text()).get("params", {})
-            if isinstance(recorded.get("matcher"), dict):
-                matcher = MatcherParams(**recorded["matcher"])
-            labeler = band_labeler(recorded.get("labeler"))
+            matcher, labeler = recorded_params(json.loads(metrics.read_text()).get("params", {}))
         except (OSError, ValueError, AttributeError, SelfContraError) as exc:
             raise BagError(f"metrics file {metrics} of bag {path} is unreadable: {exc}") from exc
     return BagLabels(path=path, images=images, matcher=matcher, labeler=labeler)

@@ -63,10 +63,10 @@ from selfcontra_ros.confidence.training import (
     Samples,
     TrainParams,
     balanced_indices,
-    band_labeler,
     band_negatives,
     frame_samples,
     merge_samples,
+    recorded_params,
     train,
 )
 from selfcontra_ros.datasets.kitti import StereoFrame, open_sequence, open_stereo_dataset
@@ -217,10 +217,7 @@ def _label_source(labels: str | Path, data: str | Path) -> _LabelSource:
     matcher = labeler = None
     for metrics in (root / "metrics.json", folder.parent / "metrics.json"):
         if metrics.is_file():
-            recorded = json.loads(metrics.read_text()).get("params", {})
-            if isinstance(recorded.get("matcher"), dict):
-                matcher = MatcherParams(**recorded["matcher"])
-            labeler = band_labeler(recorded.get("labeler"))
+            matcher, labeler = recorded_params(json.loads(metrics.read_text()).get("params", {}))
             break
     return _LabelSource(folder=folder, bag=None, matcher=matcher, labeler=labeler)
 

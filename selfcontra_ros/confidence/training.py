@@ -32,7 +32,7 @@ from selfcontra_ros.confidence.kernels import band_look
 from selfcontra_ros.errors import SelfContraError
 from selfcontra_ros.labeler import LabelerParams
 from selfcontra_ros.labels import NEGATIVE, POSITIVE, UNKNOWN
-from selfcontra_ros.matching.base import to_grey
+from selfcontra_ros.matching.base import MatcherParams, to_grey
 from selfcontra_ros.stages.voting import fattening_band
 
 __all__ = [
@@ -46,6 +46,7 @@ __all__ = [
     "frame_samples",
     "merge_samples",
     "prior_band",
+    "recorded_params",
     "train",
 ]
 
@@ -175,6 +176,19 @@ def band_labeler(recorded: Mapping[str, Any] | None) -> LabelerParams | None:
         return LabelerParams.from_dict({key: recorded[key] for key in BAND_KEYS if key in recorded})
     except (TypeError, ValueError) as exc:
         raise SelfContraError(f"the labels' recorded fattening band is invalid: {exc}") from exc
+
+
+def recorded_params(recorded: Mapping[str, Any]) -> tuple[MatcherParams | None, LabelerParams | None]:
+    """The query algorithm and the labeler's band (:func:`band_labeler`) of a label set's recorded ``params``.
+
+    ``recorded`` is the ``params`` section of a label folder's or labelled bag's ``metrics.json``; either part
+    is None where it was not recorded.
+
+    Raises:
+        SelfContraError: a recorded band size that is not a valid labeler parameter.
+    """
+    matcher = recorded.get("matcher")
+    return (MatcherParams(**matcher) if isinstance(matcher, dict) else None), band_labeler(recorded.get("labeler"))
 
 
 def _band_params(labeler: LabelerParams | None) -> LabelerParams:
