@@ -27,6 +27,8 @@ setup(
     name=PACKAGE,
     version="0.1.0",
     packages=find_packages(include=[PACKAGE, f"{PACKAGE}.*"]),
+    # The band cue the training's band prior reads (a plain-array model file, never pickle).
+    package_data={f"{PACKAGE}.confidence": ["models/*.npz"]},
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
@@ -69,7 +71,7 @@ setup(
             "colcon-ros",
         ],
     },
-    zip_safe=True,
+    zip_safe=False,  # the band cue model is read from its file next to the module
     maintainer="selfcontra_ros developers",
     maintainer_email="selfcontra-ros@example.invalid",
     description="Self-supervised stereo confidence labels from self-contradiction (Mostegel et al., CVPR 2016).",

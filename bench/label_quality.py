@@ -56,8 +56,9 @@ from numpy.typing import NDArray
 from tqdm import tqdm
 
 from selfcontra_ros.batch.label import COMPLETE
-from selfcontra_ros.cli import parse_seeds, parse_size
-from selfcontra_ros.confidence.constants import MAX_FOREST_SEED, TRAINING
+from selfcontra_ros.cli import add_band_prior_options, band_prior, parse_seeds, parse_size
+from selfcontra_ros.confidence.constants import MAX_FOREST_SEED
+from selfcontra_ros.confidence.training import BandPrior
 from selfcontra_ros.datasets import SCENES
 from selfcontra_ros.datasets.synthetic import write_sequence
 from selfcontra_ros.labels import NEGATIVE, POSITIVE, UNKNOWN
@@ -232,8 +233,7 @@ def _confidence(
     oracles: list[str] | None = None,
     forest_seeds: int = 1,
     first_forest_seed: int = 0,
-    band_share: float = float(TRAINING["band_negatives"]),
-    band_look: float = float(TRAINING["band_look"]),
+    band: BandPrior | None = None,
 ) -> dict[str, Any]:
     """Ensemble forests trained on self labels / ground truth of the first half of the seeds, scored on the rest.
 
@@ -241,8 +241,8 @@ def _confidence(
     1`` (the forest's ``random_state``; the sample draw stays the same) and the figures are means over them,
     with the self / ground-truth ratio per forest seed: one forest's AUSC moves by a few percent with its
     seed alone, which a label change must exceed to be seen. With ``oracles`` also on each of these
-    :data:`ORACLES` mendings of the self labels (the first forest seed). ``band_share``, ``band_look``: the
-    self forests' ``train --band-negatives`` / ``--band-look``; the ground-truth forest takes neither.
+    :data:`ORACLES` mendings of the self labels (the first forest seed). ``band``: the
+    self forests' band prior (``train --band-*``); the ground-truth forest takes none.
     """
     from selfcontra_ros.confidence.commands import evaluate_command, train_command
 
@@ -261,8 +261,7 @@ def _confidence(
             "ensemble",
             self_model,
             forest=forest,
-            band_share=band_share,
-            band_look=band_look,
+            band=band,
         )
         train_command([(r["data"], "gt") for r in train], "ensemble", gt_model, forest=forest)
         models += [self_model, gt_model]
@@ -277,8 +276,7 @@ def _confidence(
                 "ensemble",
                 model,
                 forest={"random_state": first_forest_seed},
-                band_share=band_share,
-                band_look=band_look,
+                band=band,
             )
             models.append(model)
     # Results are keyed by the model files' stems: "self", "gt" (and "self_f1", "gt_f1", ...), "lrd" and the
@@ -359,20 +357,7 @@ def main(argv: list[str] | None = None) -> int:
         metavar="K",
         help="with --confidence: the forest seeds are K .. K + forest-seeds - 1 (default 0, the package's forest)",
     )
-    parser.add_argument(
-        "--band-negatives",
-        type=float,
-        default=float(TRAINING["band_negatives"]),
-        metavar="SHARE",
-        help="with --confidence: the self forests' 'train --band-negatives' (default: train's default)",
-    )
-    parser.add_argument(
-        "--band-look",
-        type=float,
-        default=float(TRAINING["band_look"]),
-        metavar="SCORE",
-        help="with --confidence: the self forests' 'train --band-look' (default: train's default)",
-    )
+    add_band_prior_options(parser, prefix="with --confidence, the self forests' as in train")
     parser.add_argument("--threads", type=int, default=0)
     args = parser.parse_args(argv)
     if args.forest_seeds < 1 or not 0 <= args.first_forest_seed <= MAX_FOREST_SEED + 1 - args.forest_seeds:
@@ -432,8 +417,7 @@ def main(argv: list[str] | None = None) -> int:
                     oracles=oracles,
                     forest_seeds=args.forest_seeds,
                     first_forest_seed=args.first_forest_seed,
-                    band_share=args.band_negatives,
-                    band_look=args.band_look,
+                    band=band_prior(args),
                 )
                 scenes[scene]["confidence"] = result
                 if result:

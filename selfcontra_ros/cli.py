@@ -22,8 +22,9 @@ from selfcontra_ros.errors import SelfContraError
 
 if TYPE_CHECKING:
     from selfcontra_ros.bags.stereo_input import StereoInput
+    from selfcontra_ros.confidence.training import BandPrior
 
-__all__ = ["build_parser", "main", "parse_frame_range", "parse_size"]
+__all__ = ["add_band_prior_options", "band_prior", "build_parser", "main", "parse_frame_range", "parse_size"]
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -276,8 +277,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         namespace=args.namespace,
         slop=args.slop,
         stereo_inputs=[_stereo_input(args, Path(d)) if is_bag(Path(d)) else None for d in args.data],
-        band_share=args.band_negatives,
-        band_look=args.band_look,
+        band=band_prior(args),
         forest={"random_state": args.forest_seed},
     )
     print(
@@ -340,8 +340,7 @@ def _cmd_batch_train(args: argparse.Namespace) -> int:
         cpus_per_task=args.cpus_per_task,
         matcher=MatcherParams(algorithm=args.algorithm) if args.algorithm else None,
         max_per_input=args.max_per_input,
-        band_share=args.band_negatives,
-        band_look=args.band_look,
+        band=band_prior(args),
         n_jobs=cap_jobs(args.jobs),
         forest={"random_state": args.forest_seed},
     )
@@ -360,25 +359,49 @@ def _forest_seed(text: str) -> int:
     return seed
 
 
-def _add_training_options(parser: argparse.ArgumentParser) -> None:
-    """``--band-negatives``, ``--band-look`` and ``--forest-seed`` of ``train`` and ``batch train``."""
+def add_band_prior_options(parser: argparse.ArgumentParser, *, prefix: str = "self labels only") -> None:
+    """``--band-negatives``, ``--band-look`` and ``--band-cue``: the band prior of training on self labels.
+
+    :func:`band_prior` turns them into a :class:`~selfcontra_ros.confidence.training.BandPrior`; ``prefix``
+    starts each help text (the label benchmark says where it applies).
+    """
     parser.add_argument(
         "--band-negatives",
         type=float,
         default=float(TRAINING["band_negatives"]),
         metavar="SHARE",
-        help="self labels only: the share of the unlabelled pixels of the query's fattening band drawn as "
-        f"negatives (default {float(TRAINING['band_negatives']):g}; 0 = the paper: unknown pixels are ignored)",
+        help=f"{prefix}: the share of the unlabelled pixels of the query's fattening band drawn as negatives "
+        f"(default {float(TRAINING['band_negatives']):g}; 0 = the paper: unknown pixels are ignored)",
     )
     parser.add_argument(
         "--band-look",
         type=float,
         default=float(TRAINING["band_look"]),
         metavar="SCORE",
-        help="self labels only: band pixels that look at least this much more like the object at their disparity "
+        help=f"{prefix}: band pixels that look at least this much more like the object at their disparity "
         "than like the background beyond their drop are not drawn as negatives (a z-score difference; default "
-        f"{float(TRAINING['band_look']):g}; inf = every band pixel is drawn)",
+        f"{float(TRAINING['band_look']):g}; inf = off)",
     )
+    parser.add_argument(
+        "--band-cue",
+        type=float,
+        default=float(TRAINING["band_cue"]),
+        metavar="PROB",
+        help=f"{prefix}: band pixels the package's band cue calls right with at least this probability are "
+        f"not drawn as negatives (default {float(TRAINING['band_cue']):g}; inf = off)",
+    )
+
+
+def band_prior(args: argparse.Namespace) -> BandPrior:
+    """The :class:`~selfcontra_ros.confidence.training.BandPrior` of :func:`add_band_prior_options`' arguments."""
+    from selfcontra_ros.confidence.training import BandPrior
+
+    return BandPrior(share=args.band_negatives, look=args.band_look, cue=args.band_cue)
+
+
+def _add_training_options(parser: argparse.ArgumentParser) -> None:
+    """The band prior's options (:func:`add_band_prior_options`) and ``--forest-seed`` of ``train``, ``batch train``."""
+    add_band_prior_options(parser)
     default_seed = _forest_seed(str(FOREST["random_state"]))
     parser.add_argument(
         "--forest-seed",

@@ -103,3 +103,19 @@ def test_installed_command_runs_and_finds_installed_config(workspace: Path) -> N
         check=True,
     ).stdout.strip()
     assert Path(found) == prefix / "share" / "selfcontra_ros" / "config" / "labeler.yaml"
+    # The band cue model travels with the Python package and loads from the install, not the sources.
+    cue = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "from selfcontra_ros.confidence.band_cue import MODEL_FILE, default_band_cue; "
+            "print(MODEL_FILE, default_band_cue().n_trees)",
+        ],
+        cwd=workspace,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=True,
+    ).stdout.split()
+    assert Path(cue[0]).is_relative_to(site) and int(cue[1]) > 0

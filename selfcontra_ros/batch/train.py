@@ -37,11 +37,10 @@ from selfcontra_ros.confidence.commands import (
     input_rng,
     input_samples,
     merge_input_samples,
-    sampling_metadata,
     train_and_save,
     training_matcher,
 )
-from selfcontra_ros.confidence.training import Samples
+from selfcontra_ros.confidence.training import BandPrior, Samples
 from selfcontra_ros.errors import BatchError
 from selfcontra_ros.matching.base import MatcherParams
 from selfcontra_ros.threads import limit_threads
@@ -59,8 +58,7 @@ def sample_one(
     max_per_class: int,
     max_per_input: int | None,
     threads: int | None,
-    band_share: float = float(constants.TRAINING["band_negatives"]),
-    band_look: float = float(constants.TRAINING["band_look"]),
+    band: BandPrior | None = None,
 ) -> dict[str, Any]:
     """The samples of one ``(data, labels)`` pair as plain arrays; the body of one batch-train task.
 
@@ -79,8 +77,7 @@ def sample_one(
             input_rng(seed, position),
             max_per_class=max_per_class,
             max_per_input=max_per_input,
-            band_share=band_share,
-            band_look=band_look,
+            band=band,
         )
     except Exception as exc:  # reported with its input by the driver
         return {"error": f"{type(exc).__name__}: {exc}"}
@@ -106,8 +103,7 @@ def batch_train(
     max_per_class: int = int(constants.TRAINING["max_per_class"]),
     max_per_input: int | None = None,
     seed: int = int(constants.TRAINING["seed"]),
-    band_share: float = float(constants.TRAINING["band_negatives"]),
-    band_look: float = float(constants.TRAINING["band_look"]),
+    band: BandPrior | None = None,
     n_jobs: int | None = None,
     forest: Mapping[str, Any] | None = None,
     progress: bool = True,
@@ -126,9 +122,8 @@ def batch_train(
         max_per_class: per-image cap on samples of each class.
         max_per_input: cap on one input's samples (None: no cap beyond the per-image one).
         seed: seed of the draws.
-        band_share: the share of the unknown pixels of the query's fattening band drawn as negatives
-            (:func:`~selfcontra_ros.confidence.training.band_negatives`; 0 = the paper).
-        band_look: band pixels whose look is at least this are not drawn (``inf``: all are).
+        band: how the unknown pixels of the query's fattening band are drawn as negatives
+            (:class:`~selfcontra_ros.confidence.training.BandPrior`; None: the defaults; share 0: the paper).
         n_jobs: scikit-learn workers of the final training.
         forest: overrides of the forest constants.
         progress: a progress bar over the finished inputs.
@@ -160,7 +155,7 @@ def batch_train(
         engine = open_engine(address, cpus_per_task=cpus_per_task, inputs=len(pairs), echo=echo)
     threads = cpus_per_task if engine.remote else None
     calls = [
-        (position, d, lab, features, asdict(params), seed, max_per_class, max_per_input, threads, band_share, band_look)
+        (position, d, lab, features, asdict(params), seed, max_per_class, max_per_input, threads, band)
         for position, (d, lab) in enumerate(pairs)
     ]
     results: dict[int, dict[str, Any]] = {}
@@ -189,7 +184,7 @@ def batch_train(
         n_jobs=n_jobs,
         forest=forest,
         started=started,
-        sampling=sampling_metadata(band_share, band_look),
+        sampling=(band if band is not None else BandPrior()).metadata(),
     )
     summary.update(
         inputs=[item.name for item in used], left_out=[item.name for item in left_out], engine=engine.description

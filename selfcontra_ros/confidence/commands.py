@@ -60,10 +60,10 @@ from selfcontra_ros.confidence.features import FeatureContext, compute_features,
 from selfcontra_ros.confidence.forest import ForestModel, ModelError, load_model, model_path, save_model
 from selfcontra_ros.confidence.inputs import query_feature_input
 from selfcontra_ros.confidence.training import (
+    BandPrior,
     Samples,
     TrainParams,
     balanced_indices,
-    band_negatives,
     frame_samples,
     merge_samples,
     recorded_params,
@@ -91,7 +91,6 @@ __all__ = [
     "input_samples",
     "iter_frames",
     "merge_input_samples",
-    "sampling_metadata",
     "train_and_save",
     "train_command",
     "training_matcher",
@@ -276,8 +275,7 @@ def input_samples(
     namespace: str | None = None,
     stereo_input: StereoInput | None = None,
     slop: float | None = None,
-    band_share: float = float(constants.TRAINING["band_negatives"]),
-    band_look: float = float(constants.TRAINING["band_look"]),
+    band: BandPrior | None = None,
 ) -> InputSamples:
     """Balanced samples of one ``(data, labels)`` pair with query algorithm ``params`` (see :func:`collect_samples`).
 
@@ -290,10 +288,8 @@ def input_samples(
         max_per_input: cap on the pair's samples of each feature set (both classes together); an
             input above it keeps a balanced draw of ``max_per_input // 2`` per class. None: no cap.
         namespace, stereo_input, slop: how a data bag is read (:func:`iter_frames`).
-        band_share: self labels only (not ``gt``): the share of the unknown pixels of the query's fattening
-            band drawn as negatives (:func:`~selfcontra_ros.confidence.training.band_negatives`; 0 = the paper).
-        band_look: band pixels whose look is at least this are not drawn (``band_negatives``' ``look``;
-            ``inf``: all are).
+        band: self labels only (not ``gt``): how the unknown pixels of the query's fattening band are drawn as
+            negatives (:class:`~selfcontra_ros.confidence.training.BandPrior`; None: the defaults).
 
     Raises:
         SelfContraError: labels of a bag that match no frame of its data (or with data that is not a bag).
@@ -314,14 +310,9 @@ def input_samples(
         if label_image is None:
             continue
         if not source.is_ground_truth:
-            label_image = band_negatives(
-                label_image,
-                inputs.disparity,
-                band_share,
-                rng,
-                image=frame.left,
-                look=band_look,
-                labeler=source.labeler,
+            prior = band if band is not None else BandPrior()
+            label_image = prior.apply(
+                label_image, inputs.disparity, rng, left=frame.left, right=frame.right, labeler=source.labeler
             )
         labelled += 1
         ctx = FeatureContext(inputs)
@@ -385,15 +376,14 @@ def collect_samples(
     stereo_inputs: Sequence[StereoInput | None] | None = None,
     slop: float | None = None,
     max_per_input: int | None = None,
-    band_share: float = float(constants.TRAINING["band_negatives"]),
-    band_look: float = float(constants.TRAINING["band_look"]),
+    band: BandPrior | None = None,
 ) -> tuple[dict[str, Samples], MatcherParams]:
     """Balanced training samples of several feature sets from ``(data, labels)`` pairs; matching runs once per frame.
 
     ``namespace``, ``stereo_inputs`` (one per pair, None for a bag's own record) and ``slop``
     say how data bags are read (:func:`iter_frames`). Pair ``i`` draws its samples with
     :func:`input_rng` ``(seed, i)`` (:func:`input_samples`); ``max_per_input`` caps each pair's samples;
-    ``band_share`` and ``band_look`` as in :func:`input_samples`.
+    ``band`` as in :func:`input_samples`.
 
     Returns:
         ``({feature set: samples}, query algorithm parameters)``.
@@ -421,8 +411,7 @@ def collect_samples(
             namespace=namespace,
             stereo_input=stereo_input,
             slop=slop,
-            band_share=band_share,
-            band_look=band_look,
+            band=band,
         )
         for position, ((data, labels), stereo_input) in enumerate(zip(pairs, bag_inputs, strict=True))
     ]
@@ -441,8 +430,7 @@ def train_command(
     namespace: str | None = None,
     stereo_inputs: Sequence[StereoInput | None] | None = None,
     slop: float | None = None,
-    band_share: float = float(constants.TRAINING["band_negatives"]),
-    band_look: float = float(constants.TRAINING["band_look"]),
+    band: BandPrior | None = None,
 ) -> dict[str, Any]:
     """Train a confidence forest of feature set ``features`` and write it to ``out`` (``.npz``).
 
@@ -461,9 +449,8 @@ def train_command(
         stereo_inputs: how each data bag is read, one per pair (None: its own record, else the
             package's layout): a robot's topic names, compressed images, rectification.
         slop: data bags' left and right images paired within this many seconds; None: as recorded.
-        band_share: self labels only: the share of the unknown pixels of the query's fattening band drawn as
-            negatives (:func:`~selfcontra_ros.confidence.training.band_negatives`; 0 = the paper).
-        band_look: self labels only: band pixels whose look is at least this are not drawn (``inf``: all are).
+        band: self labels only: how the unknown pixels of the query's fattening band are drawn as negatives
+            (:class:`~selfcontra_ros.confidence.training.BandPrior`; None: the defaults; share 0: the paper).
 
     Returns:
         Summary: ``model`` path, ``samples``, ``frames``, ``positive_share``, ``seconds``.
@@ -479,8 +466,7 @@ def train_command(
         namespace=namespace,
         stereo_inputs=stereo_inputs,
         slop=slop,
-        band_share=band_share,
-        band_look=band_look,
+        band=band,
     )
     return train_and_save(
         samples[features],
@@ -490,13 +476,8 @@ def train_command(
         n_jobs=n_jobs,
         forest=forest,
         started=start,
-        sampling=sampling_metadata(band_share, band_look),
+        sampling=(band if band is not None else BandPrior()).metadata(),
     )
-
-
-def sampling_metadata(band_share: float, band_look: float) -> dict[str, Any]:
-    """How self labels were turned into samples, as a model stores it (JSON: an infinite look is None)."""
-    return {"band_negatives": float(band_share), "band_look": float(band_look) if math.isfinite(band_look) else None}
 
 
 def train_and_save(
@@ -520,8 +501,8 @@ def train_and_save(
         n_jobs: scikit-learn workers.
         forest: overrides of the forest constants.
         started: ``time.perf_counter()`` at the run's start, for ``seconds`` (None: now).
-        sampling: how self labels were sampled (:func:`sampling_metadata`), stored in the model as ``sampling``
-            when a pair has self labels (ground truth is used as it is).
+        sampling: how self labels were sampled (:meth:`~selfcontra_ros.confidence.training.BandPrior.metadata`),
+            stored in the model as ``sampling`` when a pair has self labels (ground truth is used as it is).
 
     Returns:
         Summary: ``model`` path, ``feature_set``, ``samples``, ``frames``, ``positive_share``, ``seconds``.

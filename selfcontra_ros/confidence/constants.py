@@ -150,8 +150,12 @@ MAX_FOREST_SEED = 2**32 - 1
 #: the draw as negatives (:func:`~selfcontra_ros.confidence.training.band_negatives`; 0 = the paper);
 #: ``band_look``: of those, the ones whose look (:func:`~selfcontra_ros.confidence.training.band_look_scores`)
 #: is at least this stay out of the draw (``inf``: every one is drawn, as before the look; -1 measured in
-#: ``docs/label_quality.md``).
-TRAINING = MappingProxyType({"max_per_class": 10000, "seed": 0, "band_negatives": 1.0, "band_look": -1.0})
+#: ``docs/label_quality.md``); ``band_cue``: of those, the ones the band cue
+#: (:mod:`~selfcontra_ros.confidence.band_cue`) calls right with at least this probability stay out too
+#: (``inf``: off).
+TRAINING = MappingProxyType(
+    {"max_per_class": 10000, "seed": 0, "band_negatives": 1.0, "band_look": float("inf"), "band_cue": 0.7}
+)
 
 #: The look of a band pixel (:func:`~selfcontra_ros.confidence.training.band_look_scores`): windows (rows,
 #: columns) tried in turn until both sets are large enough, fewest pixels in each set, and the side of the

@@ -35,6 +35,7 @@ __all__ = [
     "disparity_entropy",
     "forest_layout",
     "forest_predict",
+    "strip_costs",
 ]
 
 I64 = NDArray[np.int64]
@@ -625,6 +626,119 @@ def band_look(
             int(window[0]) // 2,
             int(window[1]) // 2,
             int(min_count),
+        )
+    )
+
+
+@njit(cache=True)
+def _strip_cost(
+    right: F32, r: int, c: int, disparity: float, half: int, centred: F32, n: int
+) -> float:  # pragma: no cover - compiled
+    """Zero-mean mean absolute difference of the left strip ``centred`` and the right one ``disparity`` left of it."""
+    height, width = right.shape
+    # A strip matched beyond the image border reads its edge column; the caller guarantees width >= 2.
+    x = min(max(c - disparity, 0.0), width - 1.0)
+    x0 = min(math.floor(x), width - 2)
+    t = x - x0
+    x1 = x0 + 1
+    mean = 0.0
+    for i in range(n):
+        y = min(max(r - half + i, 0), height - 1)
+        mean += (1.0 - t) * right[y, x0] + t * right[y, x1]
+    mean /= n
+    total = 0.0
+    for i in range(n):
+        y = min(max(r - half + i, 0), height - 1)
+        total += abs(centred[i] - ((1.0 - t) * right[y, x0] + t * right[y, x1] - mean))
+    return total / n
+
+
+@njit(cache=True, parallel=True)
+def _strip_costs(
+    left: F32, right: F32, rows: I64, cols: I64, own: F32, background: F32, max_disparity: int, half: int
+) -> F32:  # pragma: no cover - compiled
+    height = left.shape[0]
+    n = 2 * half + 1
+    out = np.empty((rows.size, 4), np.float32)
+    for k in prange(rows.size):
+        r, c = rows[k], cols[k]
+        strip = np.empty(n, np.float32)
+        mean = 0.0
+        for i in range(n):
+            strip[i] = left[min(max(r - half + i, 0), height - 1), c]
+            mean += strip[i]
+        mean /= n
+        texture = 0.0
+        for i in range(n):
+            strip[i] -= mean
+            texture += abs(strip[i])
+        best = math.inf
+        for d in range(0, min(max_disparity, c) + 1):
+            best = min(best, _strip_cost(right, r, c, float(d), half, strip, n))
+        out[k, 0] = _strip_cost(right, r, c, own[k], half, strip, n)
+        out[k, 1] = _strip_cost(right, r, c, background[k], half, strip, n)
+        out[k, 2] = best
+        out[k, 3] = texture / n
+    return out
+
+
+def strip_costs(
+    left: NDArray[np.floating],
+    right: NDArray[np.floating],
+    rows: NDArray[np.integer],
+    cols: NDArray[np.integer],
+    own: NDArray[np.floating],
+    background: NDArray[np.floating],
+    *,
+    max_disparity: int,
+    half_height: int,
+) -> F32:
+    """Matching costs of the thin vertical strip through each pixel ``(rows[k], cols[k])`` of the left image.
+
+    The strip is the pixel's column from ``half_height`` rows above to as many below (rows clipped at the
+    image border), its mean removed. Its cost at a disparity ``d`` is the mean absolute difference to the
+    right image's strip ``d`` columns to the left (linearly interpolated between columns, the column clamped
+    to the image), that strip's mean removed too. A strip one pixel wide does not straddle an object's
+    vertical outline the way a square window does, so it tells which side of an edge a pixel belongs to.
+
+    Args:
+        left, right: HxW float grey images of the rectified pair.
+        rows, cols: (N,) pixels to score.
+        own, background: (N,) two disparities per pixel to cost (e.g. its own and its background's).
+        max_disparity: the whole-pixel disparities 0 .. this (at most the pixel's column) are searched for the
+            smallest cost.
+        half_height: rows above and below the pixel in the strip.
+
+    Returns:
+        (N, 4) float32: cost at ``own``, cost at ``background``, smallest cost over the searched disparities,
+        and the strip's texture (mean absolute deviation from its mean), grey levels.
+
+    Raises:
+        ValueError: images of different shapes, or pixels and disparities that do not match or lie outside.
+    """
+    shape = np.shape(left)
+    if np.shape(right) != shape or len(shape) != 2 or shape[1] < 2:
+        raise ValueError(f"strip_costs: left {shape} and right {np.shape(right)} must be one HxW shape, W >= 2")
+    r: I64 = np.ascontiguousarray(rows, dtype=np.int64)
+    c: I64 = np.ascontiguousarray(cols, dtype=np.int64)
+    d0: F32 = np.ascontiguousarray(own, dtype=np.float32)
+    d1: F32 = np.ascontiguousarray(background, dtype=np.float32)
+    if not r.shape == c.shape == d0.shape == d1.shape or r.ndim != 1:
+        raise ValueError("strip_costs: rows, cols and both disparities must be (N,) arrays of one length")
+    if r.size and (r.min() < 0 or r.max() >= shape[0] or c.min() < 0 or c.max() >= shape[1]):
+        raise ValueError(f"strip_costs: pixels must lie inside the {shape} image")
+    if r.size and not (np.isfinite(d0).all() and np.isfinite(d1).all()):
+        raise ValueError("strip_costs: disparities must be finite")
+    return np.asarray(
+        _strip_costs(
+            np.ascontiguousarray(left, dtype=np.float32),
+            np.ascontiguousarray(right, dtype=np.float32),
+            r,
+            c,
+            d0,
+            d1,
+            int(max_disparity),
+            int(half_height),
         )
     )
 

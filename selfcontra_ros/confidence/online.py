@@ -73,7 +73,7 @@ from selfcontra_ros.confidence.features import (
 )
 from selfcontra_ros.confidence.forest import ForestModel, ModelError, load_model, save_model
 from selfcontra_ros.confidence.inputs import census_costs
-from selfcontra_ros.confidence.training import balanced_indices, band_negatives
+from selfcontra_ros.confidence.training import BandPrior, balanced_indices
 from selfcontra_ros.errors import SelfContraError
 from selfcontra_ros.labeler import LabelerParams
 from selfcontra_ros.labels import NEGATIVE, POSITIVE
@@ -122,7 +122,9 @@ class ConfidenceParams:
             train --band-negatives``; 0 = the paper).
         band_look: of those, the ones that look at least this much more like the object at their disparity
             than like the background beyond their drop stay out of the draw (as ``selfcontra train
-            --band-look``; ``inf``: every one is drawn).
+            --band-look``; ``inf``: off, the default).
+        band_cue: of those, the ones the band cue calls right with at least this probability stay out of the
+            draw (as ``selfcontra train --band-cue``; ``inf``: off).
         n_estimators: trees of the online forest.
         max_depth: depth limit of each tree.
         min_samples_leaf: smallest leaf, samples.
@@ -139,6 +141,7 @@ class ConfidenceParams:
     samples_per_view: int = 2000
     band_negatives: float = float(constants.TRAINING["band_negatives"])
     band_look: float = float(constants.TRAINING["band_look"])
+    band_cue: float = float(constants.TRAINING["band_cue"])
     n_estimators: int = 10
     max_depth: int = 12
     min_samples_leaf: int = 20
@@ -163,12 +166,19 @@ class ConfidenceParams:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise SelfContraError(f"ConfidenceParams.{name} must be an integer >= 1, got {value!r}")
-        if not 0.0 <= self.band_negatives <= 1.0:
-            raise SelfContraError(f"ConfidenceParams.band_negatives must be in [0, 1], got {self.band_negatives}")
-        if not isinstance(self.band_look, float) or np.isnan(self.band_look):
-            raise SelfContraError(f"ConfidenceParams.band_look must be a number (inf: off), got {self.band_look!r}")
+        for name in ("band_negatives", "band_look", "band_cue"):
+            if not isinstance(getattr(self, name), float):
+                raise SelfContraError(f"ConfidenceParams.{name} must be a number, got {getattr(self, name)!r}")
+        try:
+            self.band_prior()
+        except SelfContraError as exc:
+            raise SelfContraError(f"ConfidenceParams.band_negatives / band_look / band_cue: {exc}") from exc
         if isinstance(self.max_depth, bool) or not isinstance(self.max_depth, int) or self.max_depth < 1:
             raise SelfContraError(f"ConfidenceParams.max_depth must be an integer >= 1, got {self.max_depth!r}")
+
+    def band_prior(self) -> BandPrior:
+        """The band prior of the labelled views (:class:`~selfcontra_ros.confidence.training.BandPrior`)."""
+        return BandPrior(share=self.band_negatives, look=self.band_look, cue=self.band_cue)
 
     def forest(self) -> dict[str, Any]:
         """Forest overrides for :func:`~selfcontra_ros.confidence.forest.fit_forest`."""
@@ -475,14 +485,8 @@ class OnlineConfidence:
 
     def _learn(self, frame: ConfidenceFrame, labels: NDArray[np.uint8]) -> None:
         # Also checks that the label image has the disparity map's shape.
-        labels = band_negatives(
-            labels,
-            frame.disparity,
-            self.params.band_negatives,
-            self._draw_rng,
-            image=frame.left,
-            look=self.params.band_look,
-            labeler=self.labeler,
+        labels = self.params.band_prior().apply(
+            labels, frame.disparity, self._draw_rng, left=frame.left, right=frame.right, labeler=self.labeler
         )
         # The cheap context first: a view without both classes costs no census volume.
         at_valid = labels[frame.context(with_costs=False).valid]

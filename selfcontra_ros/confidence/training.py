@@ -7,9 +7,10 @@ image with only one class contributes nothing.
 
 Deviation, on by default (``band_negatives``, :data:`~selfcontra_ros.confidence.constants.TRAINING`; 0 = the
 paper, where unknown pixels are ignored): self labels lend the draw the unlabelled pixels of the query's own
-fattening band (:func:`band_negatives`) as negatives, except those that look like the object at their
-disparity rather than the background beyond their drop (``band_look``, -1 by default; ``inf``: every band
-pixel). Ground-truth labels are used as they are.
+fattening band (:func:`band_negatives`, :class:`BandPrior`) as negatives, except those the band cue
+(:mod:`~selfcontra_ros.confidence.band_cue`, ``band_cue``) calls right (and, optionally, those that look like
+the object at their disparity rather than the background beyond their drop: ``band_look``, off by default).
+Ground-truth labels are used as they are.
 
 :func:`train` is a pure function of its samples and parameters.
 """
@@ -26,6 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from selfcontra_ros.confidence import constants
+from selfcontra_ros.confidence.band_cue import band_cue_features, default_band_cue
 from selfcontra_ros.confidence.features import FeatureContext, compute_features, feature_names
 from selfcontra_ros.confidence.forest import ForestModel, fit_forest
 from selfcontra_ros.confidence.kernels import band_look
@@ -37,6 +39,7 @@ from selfcontra_ros.stages.voting import fattening_band
 
 __all__ = [
     "BAND_KEYS",
+    "BandPrior",
     "Samples",
     "TrainParams",
     "balanced_indices",
@@ -81,6 +84,61 @@ class TrainParams:
     forest: dict[str, Any] = field(default_factory=dict)
     n_jobs: int | None = None
     metadata: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class BandPrior:
+    """How self labels lend training the unlabelled pixels of the query's fattening band (:func:`band_negatives`).
+
+    Attributes:
+        share: probability that each unknown band pixel is drawn as a negative (0: the paper, no prior).
+        look: band pixels whose look (:func:`band_look_scores`) is at least this are not drawn (``inf``: off).
+        cue: band pixels the band cue (:mod:`~selfcontra_ros.confidence.band_cue`) calls right with at least
+            this probability are not drawn (``inf``: off).
+    """
+
+    share: float = float(constants.TRAINING["band_negatives"])
+    look: float = float(constants.TRAINING["band_look"])
+    cue: float = float(constants.TRAINING["band_cue"])
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.share <= 1.0:
+            raise SelfContraError(f"the band prior's share must be in [0, 1], got {self.share}")
+        if math.isnan(self.look):
+            raise SelfContraError("the band prior's look must be a number (inf: off), got NaN")
+        if not (0.0 <= self.cue <= 1.0 or self.cue == math.inf):
+            raise SelfContraError(f"the band prior's cue must be a probability in [0, 1] or inf (off), got {self.cue}")
+
+    def metadata(self) -> dict[str, Any]:
+        """The prior as a model file records it (JSON: an infinite look or cue, i.e. off, is None)."""
+        return {
+            "band_negatives": float(self.share),
+            "band_look": float(self.look) if math.isfinite(self.look) else None,
+            "band_cue": float(self.cue) if math.isfinite(self.cue) else None,
+        }
+
+    def apply(
+        self,
+        label_image: NDArray[np.integer],
+        disparity: NDArray[np.floating],
+        rng: np.random.Generator,
+        *,
+        left: NDArray[np.uint8],
+        right: NDArray[np.uint8],
+        labeler: LabelerParams | None = None,
+    ) -> NDArray[np.uint8]:
+        """:func:`band_negatives` of ``label_image`` with this prior (``left`` / ``right``: the query's pair)."""
+        return band_negatives(
+            label_image,
+            disparity,
+            self.share,
+            rng,
+            image=left,
+            look=self.look,
+            labeler=labeler,
+            right=right,
+            cue=self.cue,
+        )
 
 
 def balanced_indices(labels: NDArray[np.integer], max_per_class: int, rng: np.random.Generator) -> NDArray[np.int64]:
@@ -222,6 +280,9 @@ def band_negatives(
     image: NDArray[np.uint8] | None = None,
     look: float = float("inf"),
     labeler: LabelerParams | None = None,
+    right: NDArray[np.uint8] | None = None,
+    cue: float = float("inf"),
+    cue_model: ForestModel | None = None,
 ) -> NDArray[np.uint8]:
     """``label_image`` with the unknown pixels of the query's fattening band drawn as negatives for training.
 
@@ -242,23 +303,30 @@ def band_negatives(
     mostly right, and a right pixel drawn as a negative teaches the forest to distrust exactly the edges it
     should trust. Pixels whose look cannot be computed are drawn.
 
+    With a finite ``cue`` the band pixels the band cue (:mod:`~selfcontra_ros.confidence.band_cue`) calls right
+    with a probability of at least ``cue`` stay out of the draw too.
+
     Args:
         label_image: HxW codes (0 unknown, 1 positive, 2 negative).
         disparity: HxW query disparity the labels belong to; non-finite or <= 0 is invalid (never drawn).
         share: probability that each unknown band pixel is drawn as a negative (0: the labels as they are).
         rng: random generator (used only for a share strictly between 0 and 1).
-        image: the left image of ``disparity`` (HxW grey or HxWx3 RGB); needed for a finite ``look``.
+        image: the left image of ``disparity`` (HxW grey or HxWx3 RGB); needed for a finite ``look`` or ``cue``.
         look: band pixels whose look is at least this are not drawn; ``inf``: every band pixel may be.
         labeler: the parameters of the labeler that made ``label_image`` (only its ``stage2_edge_*`` sizes are
             used, so that the prior covers the band the labeler kept from positives); None, or a labeler
             without a band (``stage2_edge_jump_px`` 0, the paper), draws from the default labeler's band:
             the prior is the query's fattening, whether or not the labeler abstained there.
+        right: the right image of the pair; needed for a finite ``cue``.
+        cue: band pixels the band cue calls right with at least this probability are not drawn; ``inf``: off.
+        cue_model: the band cue; None: the package's (:func:`~selfcontra_ros.confidence.band_cue.default_band_cue`).
 
     Returns:
         HxW uint8 codes; labelled pixels are never changed.
 
     Raises:
-        SelfContraError: shapes that do not match, or a finite ``look`` without an image.
+        SelfContraError: shapes that do not match, a finite ``look`` without an image, or a finite ``cue``
+            without both images.
     """
     labels = np.asarray(label_image).astype(np.uint8)
     if labels.shape != np.shape(disparity):
@@ -270,15 +338,21 @@ def band_negatives(
     picked = band & (labels == UNKNOWN)
     if share < 1:
         picked &= rng.random(labels.shape) < share
-    if math.isfinite(look) and picked.any():
-        if image is None:
-            raise SelfContraError("band_negatives: a finite look needs the left image")
-        if np.shape(image)[:2] != labels.shape:
-            raise SelfContraError(f"image {np.shape(image)} does not match the disparity map {labels.shape}")
-        rows, cols = np.nonzero(picked)
-        scores = band_look_scores(image, disparity, band, rows, cols, jump_px=p.stage2_edge_jump_px)
-        kept = scores >= look  # NaN compares False: drawn
-        picked[rows[kept], cols[kept]] = False
+    if not (math.isfinite(look) or math.isfinite(cue)) or not picked.any():
+        labels[picked] = NEGATIVE
+        return labels
+    if image is None or (math.isfinite(cue) and right is None):
+        raise SelfContraError("band_negatives: a finite look needs the left image, a finite cue both images")
+    if np.shape(image)[:2] != labels.shape:
+        raise SelfContraError(f"image {np.shape(image)} does not match the disparity map {labels.shape}")
+    rows, cols = np.nonzero(picked)
+    scores = band_look_scores(image, disparity, band, rows, cols, jump_px=p.stage2_edge_jump_px)
+    kept = scores >= look  # NaN compares False: drawn
+    if math.isfinite(cue):
+        assert right is not None
+        model = cue_model if cue_model is not None else default_band_cue()
+        kept |= model.predict(band_cue_features(image, right, disparity, rows, cols, scores, p)) >= cue
+    picked[rows[kept], cols[kept]] = False
     labels[picked] = NEGATIVE
     return labels
 

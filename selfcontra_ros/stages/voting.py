@@ -70,6 +70,7 @@ __all__ = [
     "NEGATIVE_VOTERS",
     "OCCLUSION_VOTES",
     "VotingResult",
+    "band_background",
     "consistency_voting",
     "contradicted_positives",
     "fattening_band",
@@ -247,11 +248,25 @@ def fattening_band(
     d = np.asarray(disparity, dtype=np.float32)
     valid = np.isfinite(d) & (d > 0)
     filled = np.where(valid, d, np.float32(np.inf)).astype(np.float32)
-    kernel = np.ones((2 * other_px + 1, occluded_side_px + other_px + 1), np.uint8)
-    # Erosion is a moving minimum; the anchor puts the pixel ``occluded_side_px`` columns from the window's left.
-    smallest = cv2.erode(filled, kernel, anchor=(occluded_side_px, other_px), borderType=cv2.BORDER_REPLICATE)
+    smallest = band_background(d, occluded_side_px=occluded_side_px, other_px=other_px)
     with np.errstate(invalid="ignore"):
         return valid & (filled - smallest > jump_px)
+
+
+def band_background(disparity: NDArray[np.floating], *, occluded_side_px: int, other_px: int) -> NDArray[np.float32]:
+    """The smallest valid disparity in each pixel's :func:`fattening_band` window (HxW float32; inf: none).
+
+    For a band pixel this is the background level beyond its disparity drop: the disparity a fattened pixel
+    should have had.
+    """
+    d = np.asarray(disparity, dtype=np.float32)
+    filled = np.where(np.isfinite(d) & (d > 0), d, np.float32(np.inf)).astype(np.float32)
+    kernel = np.ones((2 * other_px + 1, occluded_side_px + other_px + 1), np.uint8)
+    # Erosion is a moving minimum; the anchor puts the pixel ``occluded_side_px`` columns from the window's left.
+    return np.asarray(
+        cv2.erode(filled, kernel, anchor=(occluded_side_px, other_px), borderType=cv2.BORDER_REPLICATE),
+        dtype=np.float32,
+    )
 
 
 def hole_margin(disparity: NDArray[np.floating], margin_px: float) -> NDArray[np.bool_]:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import threading
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -109,6 +110,8 @@ def test_params_are_checked() -> None:
         ConfidenceParams(retrain_every=0)
     with pytest.raises(SelfContraError, match="band_look"):
         ConfidenceParams(band_look=float("nan"))
+    with pytest.raises(SelfContraError, match="band_cue"):
+        ConfidenceParams(band_cue=1.5)
 
 
 def test_band_look_keeps_the_objects_own_band_pixels_out_of_the_reservoir(
@@ -120,18 +123,40 @@ def test_band_look_keeps_the_objects_own_band_pixels_out_of_the_reservoir(
     labels[:, 120:190] = POSITIVE
     seen = {}
     for look in (float("inf"), -1.0):
-        params = ConfidenceParams(retrain_every=100, samples_per_view=5000, band_look=look, **TINY_FOREST)
+        params = ConfidenceParams(
+            retrain_every=100, samples_per_view=5000, band_look=look, band_cue=float("inf"), **TINY_FOREST
+        )
         online = OnlineConfidence(params, background=False, log=lambda _: None)
         online.add_labelled(frame, labels)
         seen[look] = online.reservoirs[NEGATIVE].seen
     # The band is the 20 columns from 74; its fattened 6 columns look like the background.
     assert seen[float("inf")] == 40 * 20 and seen[-1.0] == 40 * 6
     # The band is that of the labeler whose views are added: 30 columns with a wider left reach.
-    params = ConfidenceParams(retrain_every=100, samples_per_view=5000, band_look=float("inf"), **TINY_FOREST)
+    params = ConfidenceParams(
+        retrain_every=100, samples_per_view=5000, band_look=float("inf"), band_cue=float("inf"), **TINY_FOREST
+    )
     wide = LabelerParams(stage2_edge_occluded_side_px=30)
     online = OnlineConfidence(params, background=False, log=lambda _: None, labeler=wide)
     online.add_labelled(frame, labels)
     assert online.reservoirs[NEGATIVE].seen == 40 * 30
+
+
+def test_band_cue_keeps_the_objects_own_band_pixels_out_of_the_reservoir(stereo_edge: dict[str, Any]) -> None:
+    left, right, query = stereo_edge["left"], stereo_edge["right"], stereo_edge["query"]
+    frame = ConfidenceFrame(left, right, query, None, MatcherParams(num_disparities=48))
+    labels = np.zeros(query.shape, np.uint8)
+    labels[:, 150:250] = POSITIVE
+    seen = {}
+    for cue in (float("inf"), 0.7):
+        params = ConfidenceParams(retrain_every=100, samples_per_view=50000, band_cue=cue, **TINY_FOREST)
+        online = OnlineConfidence(params, background=False, log=lambda _: None)
+        online.add_labelled(frame, labels)
+        seen[cue] = online.reservoirs[NEGATIVE].seen
+    # The band is the 20 columns from the fattened 8: with the cue (the default) about the 8 fattened columns
+    # are drawn, the object's own 12 mostly not.
+    height = query.shape[0]
+    assert seen[float("inf")] == height * 20
+    assert height * 6 < seen[0.7] < height * 10
 
 
 def test_labelled_views_give_a_balanced_bounded_reservoir_and_a_forest(labelled_frames: list) -> None:

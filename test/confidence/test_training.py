@@ -18,7 +18,7 @@ from selfcontra_ros.confidence.features import FeatureContext
 from selfcontra_ros.confidence.forest import load_model
 from selfcontra_ros.confidence.inputs import query_feature_input
 from selfcontra_ros.confidence.kernels import band_look
-from selfcontra_ros.confidence.training import band_labeler, band_look_scores, band_negatives
+from selfcontra_ros.confidence.training import BandPrior, band_labeler, band_look_scores, band_negatives
 from selfcontra_ros.datasets.synthetic import write_sequence
 from selfcontra_ros.errors import SelfContraError
 from selfcontra_ros.labeler import LabelerParams
@@ -237,7 +237,7 @@ def test_train_draws_band_negatives_from_self_labels_only(labelled: tuple[Path, 
     data, labels = labelled
     # Positives only: without band negatives no image has both classes, so there is nothing to learn.
     with pytest.raises(SelfContraError):
-        train_command([(data, labels)], "gcp", tmp_path / "paper.npz", forest=SMALL_FOREST, band_share=0.0)
+        train_command([(data, labels)], "gcp", tmp_path / "paper.npz", forest=SMALL_FOREST, band=BandPrior(share=0.0))
     summary = train_command([(data, labels)], "gcp", tmp_path / "band.npz", forest=SMALL_FOREST)
     assert summary["samples"] > 0 and summary["positive_share"] == pytest.approx(0.5)
     # Ground truth is used as it is (sparse ground truth leaves valid pixels unknown; they must stay out).
@@ -257,7 +257,7 @@ def test_train_draws_from_the_band_of_the_labels_own_labeler(labelled: tuple[Pat
     for name, band in (("wide", wide), ("narrow", narrow)):
         (labels / "metrics.json").write_text(json.dumps({"params": {"matcher": asdict(MATCHER), "labeler": band}}))
         summary = train_command(
-            [(data, labels)], "gcp", tmp_path / f"{name}.npz", forest=SMALL_FOREST, band_look=float("inf")
+            [(data, labels)], "gcp", tmp_path / f"{name}.npz", forest=SMALL_FOREST, band=BandPrior(cue=float("inf"))
         )
         counts[name] = summary["samples"]
     assert counts["wide"] > counts["narrow"] > 0
@@ -270,9 +270,12 @@ def test_train_command_line_takes_the_share(labelled: tuple[Path, Path], tmp_pat
     assert main([*base, "--out", str(tmp_path / "band.npz")]) == 0
     metadata = load_model(tmp_path / "band.npz").metadata
     assert metadata["feature_set"] == "gcp"
-    assert metadata["sampling"] == {"band_negatives": 1.0, "band_look": -1.0}  # the defaults
-    assert main([*base, "--out", str(tmp_path / "all.npz"), "--band-look", "inf"]) == 0
-    assert load_model(tmp_path / "all.npz").metadata["sampling"] == {"band_negatives": 1.0, "band_look": None}
+    assert metadata["sampling"] == {"band_negatives": 1.0, "band_look": None, "band_cue": 0.7}  # the defaults
+    options = ["--band-look", "-1", "--band-cue", "inf"]
+    assert main([*base, "--out", str(tmp_path / "look.npz"), *options]) == 0
+    recorded = load_model(tmp_path / "look.npz").metadata["sampling"]
+    assert recorded == {"band_negatives": 1.0, "band_look": -1.0, "band_cue": None}
+    assert main([*base, "--out", str(tmp_path / "bad.npz"), "--band-cue", "2"]) == 2  # not a probability
     summary = train_command([(data, "gt")], "gcp", tmp_path / "gt.npz", forest=SMALL_FOREST, matcher=MATCHER)
     assert "sampling" not in load_model(summary["model"]).metadata  # ground truth is taken as it is
 

@@ -1,0 +1,145 @@
+"""The band cue: which unlabelled pixels of the query's fattening band are likely right, for the band prior.
+
+The band prior (:func:`~selfcontra_ros.confidence.training.band_negatives`) lends training the unlabelled
+pixels of the query's fattening band as negatives. About a third to a half of them are right (the object's
+own edge pixels), and a right pixel drawn as a negative teaches the forest to distrust exactly the edges it
+should trust. The band cue is a small classifier, shipped with the package as a model file (a
+:class:`~selfcontra_ros.confidence.forest.ForestModel`, plain arrays, never pickle), that gives each band pixel
+a probability of being right from cues a square matching window cannot see:
+
+==========================  ================================================================================
+``look``                    the pixel's look (:func:`~selfcontra_ros.confidence.training.band_look_scores`):
+                            like the object at its disparity (> 0) or the background beyond its drop (< 0);
+                            0 where it cannot be computed
+``look_missing``            1 where the look could not be computed, else 0
+``strip_own_vs_background``  cost of the pixel's thin vertical strip (:func:`~selfcontra_ros.confidence.kernels.
+                            strip_costs`, 1x9) at its own disparity minus at the background's
+                            (:func:`~selfcontra_ros.stages.voting.band_background`)
+``strip_own_vs_best``       the strip's cost at its own disparity minus its smallest over 0-127 px
+``strip_contrast``          (own - background) / (own + background), 0 where both are 0
+``drop``                    the pixel's disparity minus the background's, pixels
+``strip_texture``           the strip's mean absolute deviation, grey levels
+==========================  ================================================================================
+
+A fattened pixel is background carrying the object's disparity: its strip matches better at the background's
+disparity than at its own. The strip is one pixel wide, so it does not straddle the object's vertical
+outline as the matcher's window does. The model is fitted by ``bench/fit_band_cue.py`` on the tuning seeds
+of the synthetic scenes (the band's unlabelled pixels of the default labels, against the ground truth);
+its metadata records how.
+"""
+
+from __future__ import annotations
+
+from functools import cache
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from selfcontra_ros.confidence import kernels
+from selfcontra_ros.confidence.forest import ForestModel, load_model
+from selfcontra_ros.errors import SelfContraError
+from selfcontra_ros.labeler import LabelerParams
+from selfcontra_ros.matching.base import to_grey
+from selfcontra_ros.stages.voting import band_background
+
+__all__ = ["FEATURES", "MAX_DISPARITY", "MODEL_FILE", "STRIP_HALF_HEIGHT", "band_cue_features", "default_band_cue"]
+
+#: Feature columns of the band cue, in order (see the module docstring).
+FEATURES = (
+    "look",
+    "look_missing",
+    "strip_own_vs_background",
+    "strip_own_vs_best",
+    "strip_contrast",
+    "drop",
+    "strip_texture",
+)
+
+#: Rows above and below a pixel in its strip (a 1x9 strip).
+STRIP_HALF_HEIGHT = 4
+
+#: The strip's smallest cost is searched over the whole-pixel disparities 0 .. this.
+MAX_DISPARITY = 127
+
+#: The band cue shipped with the package.
+MODEL_FILE = Path(__file__).resolve().parent / "models" / "band_cue.npz"
+
+
+def band_cue_features(
+    left: NDArray[np.uint8],
+    right: NDArray[np.uint8],
+    disparity: NDArray[np.floating],
+    rows: NDArray[np.integer],
+    cols: NDArray[np.integer],
+    look: NDArray[np.floating],
+    labeler: LabelerParams,
+) -> NDArray[np.float32]:
+    """The band cue's :data:`FEATURES` of band pixels ``(rows, cols)`` (each with a valid disparity).
+
+    Args:
+        left, right: HxW grey or HxWx3 RGB rectified pair of ``disparity``.
+        disparity: HxW left query disparity; non-finite or <= 0 is invalid.
+        rows, cols: (N,) pixels of the fattening band.
+        look: (N,) their look (NaN where it could not be computed).
+        labeler: the labeler whose band sizes give each pixel's background level.
+
+    Returns:
+        (N, len(FEATURES)) float32.
+
+    Raises:
+        SelfContraError: images that do not match the disparity map, or a pixel without a valid disparity or
+            without a smaller one in its band window.
+    """
+    d = np.asarray(disparity, dtype=np.float32)
+    if np.shape(left)[:2] != d.shape or np.shape(right)[:2] != d.shape:
+        raise SelfContraError(f"images {np.shape(left)} / {np.shape(right)} do not match the disparity {d.shape}")
+    rows, cols = np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
+    own = d[rows, cols]
+    background = band_background(
+        d, occluded_side_px=labeler.stage2_edge_occluded_side_px, other_px=labeler.stage2_edge_other_px
+    )[rows, cols]
+    if not (np.isfinite(own).all() and (own > 0).all() and np.isfinite(background).all()):
+        raise SelfContraError("band cue: every pixel needs a valid disparity and a background level (a band pixel)")
+    costs = kernels.strip_costs(
+        to_grey(np.asarray(left)).astype(np.float32),
+        to_grey(np.asarray(right)).astype(np.float32),
+        rows,
+        cols,
+        own,
+        background,
+        max_disparity=MAX_DISPARITY,
+        half_height=STRIP_HALF_HEIGHT,
+    )
+    at_own, at_background, best, texture = costs.T
+    look = np.asarray(look, dtype=np.float32)
+    total = at_own + at_background
+    contrast = np.divide(at_own - at_background, total, out=np.zeros_like(total), where=total > 0)
+    return np.column_stack(
+        [
+            np.nan_to_num(look, nan=0.0),
+            np.isnan(look),
+            at_own - at_background,
+            at_own - best,
+            contrast,
+            own - background,
+            texture,
+        ]
+    ).astype(np.float32)
+
+
+@cache
+def _load(path: Path) -> ForestModel:
+    model = load_model(path)
+    if model.metadata.get("feature_names") != list(FEATURES):
+        raise SelfContraError(f"{path} is not a band cue model (features {model.metadata.get('feature_names')})")
+    return model
+
+
+def default_band_cue() -> ForestModel:
+    """The band cue shipped with the package (:data:`MODEL_FILE`), loaded once.
+
+    Raises:
+        SelfContraError: the file is missing or is not a band cue model.
+    """
+    return _load(MODEL_FILE)

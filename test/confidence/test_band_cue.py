@@ -1,0 +1,158 @@
+"""The band cue: the strip costs against a written-out reference, its features and the shipped model on an edge."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from selfcontra_ros.confidence.band_cue import (
+    FEATURES,
+    MODEL_FILE,
+    band_cue_features,
+    default_band_cue,
+)
+from selfcontra_ros.confidence.forest import ForestModel, fit_forest, load_model, save_model
+from selfcontra_ros.confidence.kernels import strip_costs
+from selfcontra_ros.confidence.training import BandPrior, band_look_scores, band_negatives, prior_band
+from selfcontra_ros.errors import SelfContraError
+from selfcontra_ros.labeler import LabelerParams
+from selfcontra_ros.labels import NEGATIVE
+from selfcontra_ros.stages.voting import band_background
+
+
+def _strip_reference(left: np.ndarray, right: np.ndarray, r: int, c: int, d: float, half: int) -> float:
+    """The zero-mean mean absolute difference of the 1 x (2 half + 1) strips, written out."""
+    height, width = left.shape
+    ys = np.clip(np.arange(r - half, r + half + 1), 0, height - 1)
+    a = left[ys, c].astype(np.float64)
+    x = min(max(c - d, 0.0), width - 1.0)
+    x0 = min(int(np.floor(x)), width - 2)
+    t = x - x0
+    b = (1 - t) * right[ys, x0].astype(np.float64) + t * right[ys, x0 + 1]
+    return float(np.mean(np.abs((a - a.mean()) - (b - b.mean()))))
+
+
+def test_strip_costs_match_the_written_out_strips() -> None:
+    rng = np.random.default_rng(0)
+    left = rng.uniform(0, 255, (30, 50)).astype(np.float32)
+    right = rng.uniform(0, 255, (30, 50)).astype(np.float32)
+    # Pixels at the borders too: rows clipped, strips matched beyond the left border read its column.
+    rows = np.array([0, 29, 15, 3, 10, 20])
+    cols = np.array([0, 49, 25, 2, 40, 6])
+    own = np.array([0.0, 12.5, 3.25, 7.0, 39.9, 6.0], np.float32)
+    background = np.array([0.0, 2.0, 24.75, 0.5, 1.0, 0.0], np.float32)
+    got = strip_costs(left, right, rows, cols, own, background, max_disparity=12, half_height=3)
+    assert got.shape == (6, 4) and got.dtype == np.float32
+    for k, (r, c) in enumerate(zip(rows, cols, strict=True)):
+        strip = left[np.clip(np.arange(r - 3, r + 4), 0, 29), c]
+        want = [
+            _strip_reference(left, right, r, c, float(own[k]), 3),
+            _strip_reference(left, right, r, c, float(background[k]), 3),
+            min(_strip_reference(left, right, r, c, float(d), 3) for d in range(min(12, c) + 1)),
+            float(np.mean(np.abs(strip - strip.mean()))),
+        ]
+        np.testing.assert_allclose(got[k], want, rtol=1e-4, atol=1e-3)
+    with pytest.raises(ValueError, match="inside"):
+        strip_costs(left, right, np.array([30]), np.array([0]), own[:1], own[:1], max_disparity=4, half_height=3)
+    with pytest.raises(ValueError, match="finite"):
+        strip_costs(left, right, rows[:1], cols[:1], np.array([np.nan]), own[:1], max_disparity=4, half_height=3)
+
+
+def test_band_background_is_the_smallest_disparity_of_the_band_window() -> None:
+    rng = np.random.default_rng(1)
+    d = rng.uniform(1, 60, (25, 40)).astype(np.float32)
+    d[rng.random(d.shape) < 0.2] = np.nan
+    got = band_background(d, occluded_side_px=6, other_px=2)
+    filled = np.where(np.isfinite(d), d, np.inf)
+    for r in range(25):
+        for c in range(40):
+            window = filled[max(r - 2, 0) : r + 3, max(c - 6, 0) : c + 3]
+            assert got[r, c] == pytest.approx(window.min())
+
+
+def test_band_cue_features_tell_fattened_pixels_from_the_objects_own(stereo_edge: dict[str, Any]) -> None:
+    left, right, query = stereo_edge["left"], stereo_edge["right"], stereo_edge["query"]
+    edge = stereo_edge["edge"]
+    labeler = LabelerParams()
+    band = prior_band(query, labeler)
+    rows, cols = np.nonzero(band[5:-5])
+    rows += 5  # away from the top and bottom rows, where the strips are clipped
+    look = band_look_scores(left, query, band, rows, cols)
+    x = band_cue_features(left, right, query, rows, cols, look, labeler)
+    assert x.shape == (rows.size, len(FEATURES)) and x.dtype == np.float32
+    column = dict(zip(FEATURES, x.T, strict=True))
+    fattened, own = cols < edge, cols >= edge
+    assert fattened.sum() > 100 and own.sum() > 100
+    # The object's own band pixels match best at their own disparity, far better than at the background's; the
+    # fattened ones (background hidden from the right camera, as beside any object's left outline) match
+    # nowhere at the object's disparity they carry: some other disparity matches their strip better.
+    assert np.median(column["strip_own_vs_background"][own]) < -5
+    assert np.percentile(column["strip_own_vs_best"][own], 90) < 0.5
+    assert np.median(column["strip_own_vs_best"][fattened]) > 5
+    # The look: like the object's interior on its own pixels, like the background on the fattened ones.
+    assert np.median(column["look"][own]) > 0 > np.median(column["look"][fattened])
+    np.testing.assert_allclose(column["drop"], 20.0)
+    # The shipped cue ranks the object's own band pixels above the fattened ones.
+    p_right = default_band_cue().predict(x)
+    wins = (p_right[own][:, None] > p_right[fattened][None, :]).mean()
+    assert wins > 0.9
+    hole = query.copy()
+    hole[0, 0] = np.nan
+    with pytest.raises(SelfContraError, match="valid disparity"):
+        band_cue_features(left, right, hole, np.array([0]), np.array([0]), np.array([np.nan]), labeler)
+
+
+def test_the_shipped_band_cue_is_a_plain_array_model_that_records_its_fit() -> None:
+    model = default_band_cue()
+    assert model is default_band_cue()  # loaded once
+    assert model.metadata["feature_names"] == list(FEATURES) and model.n_features == len(FEATURES)
+    assert set(model.metadata["fitted_on"]["scenes"]) == {"orbit", "street", "room"}
+    with np.load(MODEL_FILE, allow_pickle=False) as archive:  # never pickle
+        assert all(archive[name].dtype != object for name in archive.files)
+
+
+def _constant_cue(tmp_path: Path, right_share: float) -> ForestModel:
+    """A band cue model that gives every pixel the probability ``right_share`` of being right."""
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(200, len(FEATURES))).astype(np.float32)
+    y = np.zeros(200, bool)
+    y[: round(200 * right_share)] = True
+    model = fit_forest(
+        x,
+        y,
+        {"feature_names": list(FEATURES)},
+        forest={"n_estimators": 1, "max_depth": 1, "min_samples_leaf": 200, "bootstrap": False},
+    )
+    return load_model(save_model(model, tmp_path / f"cue_{right_share}.npz"))
+
+
+def test_band_negatives_leave_out_what_the_cue_calls_right(stereo_edge: dict[str, Any], tmp_path: Path) -> None:
+    left, right, query = stereo_edge["left"], stereo_edge["right"], stereo_edge["query"]
+    edge, fattened = stereo_edge["edge"], stereo_edge["fattened"]
+    labels = np.zeros(query.shape, np.uint8)
+    rng = np.random.default_rng(0)
+    everything = band_negatives(labels, query, 1.0, rng)
+    assert (everything == NEGATIVE).sum() > 0
+    # A cue that calls every pixel right with 0.8 leaves out everything at 0.7 and nothing at 0.9.
+    sure = _constant_cue(tmp_path, 0.8)
+    kwargs = {"image": left, "right": right, "cue_model": sure}
+    assert not band_negatives(labels, query, 1.0, rng, cue=0.7, **kwargs).any()
+    assert np.array_equal(band_negatives(labels, query, 1.0, rng, cue=0.9, **kwargs), everything)
+    # The shipped cue draws the fattened pixels and leaves most of the object's own out.
+    drawn = band_negatives(labels, query, 1.0, rng, image=left, right=right, cue=0.7) == NEGATIVE
+    inner = slice(5, -5)
+    assert drawn[inner, edge - fattened : edge].mean() > 0.8
+    assert drawn[inner, edge : edge + 12].mean() < 0.2
+    # The prior as one object: the same draw, and what a model records of it.
+    prior = BandPrior(share=1.0, look=float("inf"), cue=0.7)
+    same = prior.apply(labels, query, rng, left=left, right=right) == NEGATIVE
+    assert np.array_equal(same, drawn)
+    assert prior.metadata() == {"band_negatives": 1.0, "band_look": None, "band_cue": 0.7}
+    with pytest.raises(SelfContraError, match="both images"):
+        band_negatives(labels, query, 1.0, rng, image=left, cue=0.7)
+    for bad in ({"share": 1.5}, {"look": float("nan")}, {"cue": 1.2}, {"cue": float("nan")}):
+        with pytest.raises(SelfContraError, match="band prior"):
+            BandPrior(**bad)  # type: ignore[arg-type]
