@@ -154,7 +154,7 @@ MAX_FOREST_SEED = 2**32 - 1
 #: (:mod:`~selfcontra_ros.confidence.band_cue`) calls right with at least this probability stay out too
 #: (``inf``: off).
 TRAINING = MappingProxyType(
-    {"max_per_class": 10000, "seed": 0, "band_negatives": 1.0, "band_look": float("inf"), "band_cue": 0.7}
+    {"max_per_class": 10000, "seed": 0, "band_negatives": 1.0, "band_look": float("inf"), "band_cue": 0.5}
 )
 
 #: The look of a band pixel (:func:`~selfcontra_ros.confidence.training.band_look_scores`): windows (rows,

@@ -147,16 +147,16 @@ def test_band_cue_keeps_the_objects_own_band_pixels_out_of_the_reservoir(stereo_
     labels = np.zeros(query.shape, np.uint8)
     labels[:, 150:250] = POSITIVE
     seen = {}
-    for cue in (float("inf"), 0.7):
-        params = ConfidenceParams(retrain_every=100, samples_per_view=50000, band_cue=cue, **TINY_FOREST)
+    for name, cue in (("off", {"band_cue": float("inf")}), ("default", {})):
+        params = ConfidenceParams(retrain_every=100, samples_per_view=50000, **cue, **TINY_FOREST)
         online = OnlineConfidence(params, background=False, log=lambda _: None)
         online.add_labelled(frame, labels)
-        seen[cue] = online.reservoirs[NEGATIVE].seen
+        seen[name] = online.reservoirs[NEGATIVE].seen
     # The band is the 20 columns from the fattened 8: with the cue (the default) about the 8 fattened columns
     # are drawn, the object's own 12 mostly not.
     height = query.shape[0]
-    assert seen[float("inf")] == height * 20
-    assert height * 6 < seen[0.7] < height * 10
+    assert seen["off"] == height * 20
+    assert height * 6 < seen["default"] < height * 10
 
 
 def test_labelled_views_give_a_balanced_bounded_reservoir_and_a_forest(labelled_frames: list) -> None:

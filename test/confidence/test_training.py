@@ -270,7 +270,7 @@ def test_train_command_line_takes_the_share(labelled: tuple[Path, Path], tmp_pat
     assert main([*base, "--out", str(tmp_path / "band.npz")]) == 0
     metadata = load_model(tmp_path / "band.npz").metadata
     assert metadata["feature_set"] == "gcp"
-    assert metadata["sampling"] == {"band_negatives": 1.0, "band_look": None, "band_cue": 0.7}  # the defaults
+    assert metadata["sampling"] == {"band_negatives": 1.0, "band_look": None, "band_cue": 0.5}  # the defaults
     options = ["--band-look", "-1", "--band-cue", "inf"]
     assert main([*base, "--out", str(tmp_path / "look.npz"), *options]) == 0
     recorded = load_model(tmp_path / "look.npz").metadata["sampling"]
