@@ -38,7 +38,9 @@ from selfcontra_ros.confidence.constants import TRAINING
 from selfcontra_ros.confidence.forest import ForestModel, fit_forest, load_model, save_model
 from selfcontra_ros.confidence.training import band_look_scores, prior_band
 from selfcontra_ros.datasets import SCENES
+from selfcontra_ros.evaluation.metrics import ground_truth_labels
 from selfcontra_ros.labeler import LabelerParams
+from selfcontra_ros.labels import NEGATIVE
 from selfcontra_ros.matching.base import MatcherParams, make_matcher
 from selfcontra_ros.threads import limit_threads
 
@@ -82,7 +84,7 @@ def band_samples(
             rows, cols = rows[pick], cols[pick]
         look = band_look_scores(frame.left, disparity, band, rows, cols, jump_px=labeler.stage2_edge_jump_px)
         features.append(band_cue_features(frame.left, frame.right, disparity, rows, cols, look, labeler))
-        wrong.append(np.abs(disparity[rows, cols] - gt[rows, cols]) > 3.0)
+        wrong.append(ground_truth_labels(disparity, gt)[rows, cols] == NEGATIVE)
     if not features:
         return np.zeros((0, len(FEATURES)), np.float32), np.zeros(0, bool)
     return np.concatenate(features), np.concatenate(wrong)

@@ -247,10 +247,9 @@ def fattening_band(
     """
     d = np.asarray(disparity, dtype=np.float32)
     valid = np.isfinite(d) & (d > 0)
-    filled = np.where(valid, d, np.float32(np.inf)).astype(np.float32)
     smallest = band_background(d, occluded_side_px=occluded_side_px, other_px=other_px)
     with np.errstate(invalid="ignore"):
-        return valid & (filled - smallest > jump_px)
+        return valid & (d - smallest > jump_px)
 
 
 def band_background(disparity: NDArray[np.floating], *, occluded_side_px: int, other_px: int) -> NDArray[np.float32]:
