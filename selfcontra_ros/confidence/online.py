@@ -343,6 +343,9 @@ class OnlineConfidence:
         self._idle = threading.Event()
         self._idle.set()
         self._thread: threading.Thread | None = None
+        self._closed = False
+        self._background = background
+        self._close_lock = threading.Lock()  # a view is queued before the trainer closes or not at all
         if background:
             self._thread = threading.Thread(target=self._trainer, name="selfcontra_confidence_trainer", daemon=True)
             self._thread.start()
@@ -428,17 +431,22 @@ class OnlineConfidence:
         """Feed a labelled view (its frame and HxW label codes); retrains every ``retrain_every`` views.
 
         In the background mode the view is queued; returns False when the
-        queue was full (the view is not used, ``views_dropped`` counts it).
+        queue was full or the trainer was closed (the view is not used,
+        ``views_dropped`` counts it).
         """
-        if self._thread is None:
+        if not self._background:
             self._learn(frame, labels)
             return True
-        try:
-            self._idle.clear()
-            self._queue.put_nowait((frame, labels))
-        except queue.Full:
-            self.views_dropped += 1
-            return False
+        with self._close_lock:
+            if self._closed:
+                self.views_dropped += 1
+                return False
+            try:
+                self._idle.clear()
+                self._queue.put_nowait((frame, labels))
+            except queue.Full:
+                self.views_dropped += 1
+                return False
         return True
 
     def wait_idle(self, timeout: float | None = None) -> bool:
@@ -454,11 +462,27 @@ class OnlineConfidence:
                 return False
             self._idle.wait(0.05 if remaining is None else min(0.05, remaining))
 
-    def close(self, timeout: float = 10.0) -> None:
-        """Stop the trainer thread (after the view it is working on); safe to call twice."""
-        thread, self._thread = self._thread, None
-        if thread is None:
-            return
+    def close(self, timeout: float = 10.0, *, discard_queued: bool = False) -> None:
+        """Stop the trainer thread (after the view it is working on); safe to call twice.
+
+        A background trainer takes no views after this (:meth:`add_labelled` counts them in
+        ``views_dropped``). ``discard_queued``: the views still queued are not learnt either (counted
+        the same way), so that a node stopping does not wait for their samples and retrainings.
+        """
+        with self._close_lock:
+            thread, self._thread = self._thread, None
+            if thread is None:
+                return
+            self._closed = True
+            while discard_queued:
+                try:
+                    self._queue.get_nowait()
+                except queue.Empty:
+                    break
+                self.views_dropped += 1
+                self._queue.task_done()
+            if self._queue.unfinished_tasks == 0:
+                self._idle.set()
         while True:
             try:
                 self._queue.put(None, timeout=timeout)

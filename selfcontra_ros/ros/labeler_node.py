@@ -186,7 +186,12 @@ default the views still queued or waiting in the window are *not* labelled
 (shutdown stays fast; they are counted as ``shutdown_discarded``); with
 ``flush_on_shutdown`` the worker labels the queued views and then flushes the
 session's window (:meth:`LabelingSession.flush`) before the node exits, which
-takes one labeling per waiting view. Exit codes: 0 stopped, 2 invalid parameters.
+takes one labeling per waiting view; the node waits for that however long it
+takes (logging what is left every 10 s; a second Ctrl-C cuts it short). The
+confidence threads stop first either way: frames waiting for a forest
+confidence and views waiting for the trainer are dropped (``~/stats``
+``confidence.views_dropped``), and the views labelled while stopping do not
+train the forest. Exit codes: 0 stopped, 2 invalid parameters.
 """
 
 from __future__ import annotations
@@ -315,7 +320,8 @@ _TF_RETRY_PERIOD_S = 0.05
 _WARN_PERIOD_S = 5.0
 # Poses kept: 10 s of a 100 Hz odometry.
 _POSE_CAPACITY = 1000
-# How long shutdown waits for a labeling in progress (one labeling at KITTI size takes ~1 s).
+# How long shutdown waits for a labeling in progress (one labeling at KITTI size takes ~1 s) or a confidence
+# thread; with flush_on_shutdown, how often it logs while it waits for the labeling worker.
 _JOIN_TIMEOUT_S = 10.0
 _STATS_LOG_PERIOD_S = 30.0
 # Upper bound of the wait for reliable subscribers' acknowledgements of the flushed labels at shutdown.
@@ -1389,9 +1395,10 @@ class LabelerNode(Node):
     def stop(self) -> None:
         """Stop the labeling worker; with ``flush_on_shutdown`` label what is queued and flush the window first.
 
-        Safe to call more than once. Frames still waiting for their pose are discarded; with
-        ``flush_on_shutdown`` and ``pose_source: odometry`` the odometry first decides the frames it
-        still holds (``OnlineOdometry.finish``, the end of the sequence), and those with a pose are labelled.
+        Safe to call more than once. The confidence threads stop first (module docstring). Frames still
+        waiting for their pose are discarded; with ``flush_on_shutdown`` and ``pose_source: odometry`` the
+        odometry first decides the frames it still holds (``OnlineOdometry.finish``, the end of the
+        sequence), and those with a pose are labelled.
         """
         if self._worker is None:
             return
@@ -1406,13 +1413,18 @@ class LabelerNode(Node):
         if self._awaiting_pose:
             self._drop("shutdown_discarded", "node stopping", len(self._awaiting_pose))
             self._awaiting_pose.clear()
-        try:
-            # Waits only while the queue is full: the worker frees a slot after the view it is labeling.
-            self._label_queue.put(None, timeout=_JOIN_TIMEOUT_S)
-        except queue.Full:
-            self.get_logger().error("the labeling worker does not take views any more; exiting without it")
-        worker.join(timeout=_JOIN_TIMEOUT_S)
+        # The confidence threads first: nothing needs them any more, and the trainer (0.8 s of band cue and
+        # features per KITTI view, retrainings) would take the cores from the labeling worker's last views.
         self._stop_confidence()
+        if self._flush_on_shutdown:
+            self._finish_labeling(worker)
+        else:
+            try:
+                # Waits only while the queue is full: the worker frees a slot after the view it is labeling.
+                self._label_queue.put(None, timeout=_JOIN_TIMEOUT_S)
+            except queue.Full:
+                self.get_logger().error("the labeling worker does not take views any more; exiting without it")
+            worker.join(timeout=_JOIN_TIMEOUT_S)
         if self._flush_on_shutdown and not worker.is_alive():
             with self._lock:
                 session = self._session
@@ -1427,6 +1439,25 @@ class LabelerNode(Node):
             self._wait_for_acknowledgements()
         self.get_logger().info(f"stopped: {self._summary()}")
 
+    def _finish_labeling(self, worker: threading.Thread) -> None:
+        """``flush_on_shutdown``: wait for the worker to label every queued view, however long that takes.
+
+        Its labels are the ones asked for; a bound here lost them on a loaded machine (the window's
+        flush was skipped). A second Ctrl-C interrupts the wait (``ros.spinning``).
+        """
+        while worker.is_alive():
+            try:
+                self._label_queue.put(None, timeout=_JOIN_TIMEOUT_S)
+                break
+            except queue.Full:
+                self.get_logger().info(f"stopping: labeling the {self._label_queue.qsize()} queued views first")
+        while worker.is_alive():
+            worker.join(timeout=_JOIN_TIMEOUT_S)
+            if worker.is_alive():
+                self.get_logger().info(
+                    f"stopping: still labeling ({self._label_queue.qsize()} views queued), then the window's flush"
+                )
+
     def _stop_confidence(self) -> None:
         """Stop the confidence worker (dropping waiting frames) and the trainer thread."""
         thread, self._confidence_worker = self._confidence_worker, None
@@ -1439,7 +1470,7 @@ class LabelerNode(Node):
             self._confidence_queue.put(None)
             thread.join(timeout=_JOIN_TIMEOUT_S)
         if self._confidence is not None:
-            self._confidence.close(timeout=_JOIN_TIMEOUT_S)
+            self._confidence.close(timeout=_JOIN_TIMEOUT_S, discard_queued=True)
 
     def _wait_for_acknowledgements(self, timeout_s: float = _ACK_TIMEOUT_S) -> None:
         """Give reliable subscribers up to ``timeout_s`` in all to acknowledge the last labels before the node goes."""

@@ -219,6 +219,34 @@ def test_background_retraining_swaps_atomically(labelled_frames: list) -> None:
     assert sum("switched from LRD" in m for m in messages) == 1
 
 
+def test_closing_drops_the_queued_views_and_takes_no_more(labelled_frames: list) -> None:
+    """close(discard_queued=True), as a node stopping: the view in progress finishes, the queued ones and any
+    offered afterwards are not learnt (counted in views_dropped), and the trainer ends."""
+    online = OnlineConfidence(ConfidenceParams(retrain_every=1, **TINY), background=True, log=lambda m: None)
+    started, release = threading.Event(), threading.Event()
+    learnt: list[int] = []
+
+    def slow_learn(frame: ConfidenceFrame, labels: np.ndarray) -> None:
+        learnt.append(len(learnt))
+        started.set()
+        assert release.wait(30.0)
+
+    online._learn = slow_learn  # type: ignore[method-assign]
+    trainer = online._thread
+    assert trainer is not None
+    frame, labels = labelled_frames[0]
+    assert online.add_labelled(frame, labels)
+    assert started.wait(30.0), "the trainer should take the first view"
+    assert online.add_labelled(frame, labels) and online.add_labelled(frame, labels)  # TRAINER_QUEUE views wait
+    online.close(timeout=0.05, discard_queued=True)  # returns while the first view is still being learnt
+    assert not online.add_labelled(frame, labels)
+    release.set()
+    trainer.join(30.0)
+    assert not trainer.is_alive(), "the trainer should end after its view"
+    assert learnt == [0] and online.views_dropped == 3
+    online.close()  # a second close is harmless
+
+
 def test_model_out_and_model_in_round_trip(labelled_frames: list, tmp_path: Path) -> None:
     path = tmp_path / "models" / "online.npz"
     trainer = OnlineConfidence(
