@@ -19,13 +19,20 @@ a probability of being right from cues a square matching window cannot see:
 ``strip_contrast``          (own - background) / (own + background), 0 where both are 0
 ``drop``                    the pixel's disparity minus the background's, pixels
 ``strip_texture``           the strip's mean absolute deviation, grey levels
+``edge_distance``           how near the disparity drop is (:func:`edge_distances`): the smallest reach k
+                            (1 .. the band's 20 px to the left) of the band's window, shrunk to k px left
+                            and min(k, 4) px right, up and down, that holds it; 21 where none does
+``edge_distance_row``       the same with the window in the pixel's row, to its left only
+``edge_distance_other``     the same with the window right, up and down only (k <= 4 px)
 ==========================  ================================================================================
 
 A fattened pixel is background carrying the object's disparity: its strip matches better at the background's
 disparity than at its own. The strip is one pixel wide, so it does not straddle the object's vertical
-outline as the matcher's window does. The model is fitted by ``bench/fit_band_cue.py`` on the tuning seeds
-of the synthetic scenes (the band's unlabelled pixels of the default labels, against the ground truth);
-its metadata records how.
+outline as the matcher's window does. Fattening is densest next to the drop, so the distances let the
+forest weigh the strip's evidence by where in the band a pixel lies. The model is fitted by
+``bench/fit_band_cue.py`` on the tuning seeds of the synthetic scenes (the band's pixels of the default
+matcher, against the ground truth): a prior learned on synthetic ground truth, never on the user's data; its
+metadata records how.
 """
 
 from __future__ import annotations
@@ -43,7 +50,15 @@ from selfcontra_ros.labeler import LabelerParams
 from selfcontra_ros.matching.base import to_grey
 from selfcontra_ros.stages.voting import band_background
 
-__all__ = ["FEATURES", "MAX_DISPARITY", "MODEL_FILE", "STRIP_HALF_HEIGHT", "band_cue_features", "default_band_cue"]
+__all__ = [
+    "FEATURES",
+    "MAX_DISPARITY",
+    "MODEL_FILE",
+    "STRIP_HALF_HEIGHT",
+    "band_cue_features",
+    "default_band_cue",
+    "edge_distances",
+]
 
 #: Feature columns of the band cue, in order (see the module docstring).
 FEATURES = (
@@ -54,6 +69,9 @@ FEATURES = (
     "strip_contrast",
     "drop",
     "strip_texture",
+    "edge_distance",
+    "edge_distance_row",
+    "edge_distance_other",
 )
 
 #: Rows above and below a pixel in its strip (a 1x9 strip).
@@ -124,8 +142,36 @@ def band_cue_features(
             contrast,
             own - background,
             texture,
+            edge_distances(d, rows, cols, labeler),
         ]
     ).astype(np.float32)
+
+
+def edge_distances(
+    disparity: NDArray[np.floating], rows: NDArray[np.integer], cols: NDArray[np.integer], labeler: LabelerParams
+) -> NDArray[np.float32]:
+    """``edge_distance``, ``edge_distance_row`` and ``edge_distance_other`` of pixels ``(rows, cols)``, (N, 3).
+
+    Each is the smallest reach k, pixels, of a window in which the disparity drops by more than the labeler's
+    ``stage2_edge_jump_px`` below the pixel's (:func:`~selfcontra_ros.stages.voting.band_background` of the
+    window): the band's window shrunk to k px left and min(k, ``stage2_edge_other_px``) right, up and down;
+    k px left in the pixel's row; k px right, up and down (k up to ``stage2_edge_other_px``). A pixel whose
+    window holds no drop at the largest reach gets ``stage2_edge_occluded_side_px + 1``.
+    """
+    d = np.asarray(disparity, dtype=np.float32)
+    rows, cols = np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
+    left_px, other_px = labeler.stage2_edge_occluded_side_px, labeler.stage2_edge_other_px
+    own = d[rows, cols]
+    out = np.full((rows.size, 3), np.float32(left_px + 1), dtype=np.float32)
+    for k in range(max(left_px, other_px), 0, -1):  # downwards: the smallest reach that holds a drop wins
+        windows = [(min(k, left_px), min(k, other_px)), (min(k, left_px), 0)]
+        if k <= other_px:
+            windows.append((0, k))
+        for j, (occluded, other) in enumerate(windows):
+            smallest = band_background(d, occluded_side_px=occluded, other_px=other)[rows, cols]
+            with np.errstate(invalid="ignore"):
+                out[own - smallest > labeler.stage2_edge_jump_px, j] = k
+    return out
 
 
 @cache

@@ -13,6 +13,7 @@ from selfcontra_ros.confidence.band_cue import (
     MODEL_FILE,
     band_cue_features,
     default_band_cue,
+    edge_distances,
 )
 from selfcontra_ros.confidence.forest import ForestModel, fit_forest, load_model, save_model
 from selfcontra_ros.confidence.kernels import strip_costs
@@ -95,6 +96,11 @@ def test_band_cue_features_tell_fattened_pixels_from_the_objects_own(stereo_edge
     # The look: like the object's interior on its own pixels, like the background on the fattened ones.
     assert np.median(column["look"][own]) > 0 > np.median(column["look"][fattened])
     np.testing.assert_allclose(column["drop"], 20.0)
+    # The drop is the background column left of the fattened run: nearer to the fattened pixels.
+    reach = cols - (edge - stereo_edge["fattened"] - 1)
+    np.testing.assert_array_equal(column["edge_distance"], reach)
+    np.testing.assert_array_equal(column["edge_distance_row"], reach)
+    np.testing.assert_array_equal(column["edge_distance_other"], labeler.stage2_edge_occluded_side_px + 1)
     # The shipped cue ranks the object's own band pixels above the fattened ones.
     p_right = default_band_cue().predict(x)
     wins = (p_right[own][:, None] > p_right[fattened][None, :]).mean()
@@ -103,6 +109,38 @@ def test_band_cue_features_tell_fattened_pixels_from_the_objects_own(stereo_edge
     hole[0, 0] = np.nan
     with pytest.raises(SelfContraError, match="valid disparity"):
         band_cue_features(left, right, hole, np.array([0]), np.array([0]), np.array([np.nan]), labeler)
+
+
+def test_edge_distances_are_the_smallest_reach_that_holds_a_drop() -> None:
+    rng = np.random.default_rng(2)
+    d = rng.choice([5.0, 12.0, 30.0], size=(30, 70), p=[0.1, 0.2, 0.7]).astype(np.float32)
+    d[rng.random(d.shape) < 0.05] = np.nan
+    labeler = LabelerParams(stage2_edge_occluded_side_px=9, stage2_edge_other_px=3)
+    rows, cols = np.nonzero(np.isfinite(d))
+    got = edge_distances(d, rows, cols, labeler)
+    jump = labeler.stage2_edge_jump_px
+    filled = np.where(np.isfinite(d), d, np.inf)
+
+    def reach(r: int, c: int, window: Any) -> float:
+        """The smallest k whose window (rows up and down, columns left, columns right) holds a drop."""
+        for k in range(1, 10):
+            sizes = window(k)
+            if sizes is None:
+                break
+            vertical, left, right = sizes
+            box = filled[max(r - vertical, 0) : r + vertical + 1, max(c - left, 0) : c + right + 1]
+            if d[r, c] - box.min() > jump:
+                return float(k)
+        return 10.0
+
+    for n in rng.choice(rows.size, 300, replace=False):
+        r, c = int(rows[n]), int(cols[n])
+        want = [
+            reach(r, c, lambda k: (min(k, 3), min(k, 9), min(k, 3))),
+            reach(r, c, lambda k: (0, k, 0)),
+            reach(r, c, lambda k: (k, 0, k) if k <= 3 else None),
+        ]
+        np.testing.assert_array_equal(got[n], want, err_msg=f"pixel ({r}, {c})")
 
 
 def test_the_shipped_band_cue_is_a_plain_array_model_that_records_its_fit() -> None:
@@ -141,16 +179,16 @@ def test_band_negatives_leave_out_what_the_cue_calls_right(stereo_edge: dict[str
     kwargs = {"image": left, "right": right, "cue_model": sure}
     assert not band_negatives(labels, query, 1.0, rng, cue=0.7, **kwargs).any()
     assert np.array_equal(band_negatives(labels, query, 1.0, rng, cue=0.9, **kwargs), everything)
-    # The shipped cue draws the fattened pixels and leaves most of the object's own out.
-    drawn = band_negatives(labels, query, 1.0, rng, image=left, right=right, cue=0.7) == NEGATIVE
+    # The shipped cue at its default threshold draws the fattened pixels and leaves most of the object's own out.
+    drawn = band_negatives(labels, query, 1.0, rng, image=left, right=right, cue=0.5) == NEGATIVE
     inner = slice(5, -5)
     assert drawn[inner, edge - fattened : edge].mean() > 0.8
     assert drawn[inner, edge : edge + 12].mean() < 0.2
     # The prior as one object: the same draw, and what a model records of it.
-    prior = BandPrior(share=1.0, look=float("inf"), cue=0.7)
+    prior = BandPrior(share=1.0, look=float("inf"), cue=0.5)
     same = prior.apply(labels, query, rng, left=left, right=right) == NEGATIVE
     assert np.array_equal(same, drawn)
-    assert prior.metadata() == {"band_negatives": 1.0, "band_look": None, "band_cue": 0.7}
+    assert prior.metadata() == {"band_negatives": 1.0, "band_look": None, "band_cue": 0.5}
     with pytest.raises(SelfContraError, match="both images"):
         band_negatives(labels, query, 1.0, rng, image=left, cue=0.7)
     for bad in ({"share": 1.5}, {"look": float("nan")}, {"cue": 1.2}, {"cue": float("nan")}):
