@@ -148,6 +148,11 @@ def _run_ros(bag: Path, params: Path, labelled: int, out: Path) -> dict[int, dic
                 f"bag:={bag}",
                 "-p",
                 "wait_for_subscribers:=5",
+                # Keep-last 10 lets a reliable writer overwrite samples a reader has not acknowledged yet: on a
+                # loaded machine the labeler missed frames 11 and 13 of 24 that way (no drop it could count).
+                # The whole bag fits in the history.
+                "-p",
+                "qos_depth:=1000",
             ],
             logs / "player.log",
         )

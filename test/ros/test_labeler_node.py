@@ -395,7 +395,7 @@ def test_flush_on_shutdown_waits_for_a_slow_labeling_worker(
 ) -> None:
     """flush_on_shutdown: stopping waits for the labeling worker however long its queued views take (here
     the worker is held for many times the node's join timeout, as on a loaded machine), then flushes the
-    window. No label is lost; a bounded wait skipped the flush (make demo lost 3 of 14 labels that way)."""
+    window. No label is lost; a bounded wait skipped the flush and lost the window's last labels."""
     from selfcontra_ros.ros import labeler_node as node_module
 
     monkeypatch.setattr(node_module, "_JOIN_TIMEOUT_S", 0.05)
