@@ -343,7 +343,6 @@ class OnlineConfidence:
         self._idle = threading.Event()
         self._idle.set()
         self._thread: threading.Thread | None = None
-        self._closed = False
         self._background = background
         self._close_lock = threading.Lock()  # a view is queued before the trainer closes or not at all
         if background:
@@ -438,7 +437,7 @@ class OnlineConfidence:
             self._learn(frame, labels)
             return True
         with self._close_lock:
-            if self._closed:
+            if self._thread is None:  # closed
                 self.views_dropped += 1
                 return False
             try:
@@ -473,7 +472,6 @@ class OnlineConfidence:
             thread, self._thread = self._thread, None
             if thread is None:
                 return
-            self._closed = True
             while discard_queued:
                 try:
                     self._queue.get_nowait()
