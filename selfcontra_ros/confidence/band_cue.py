@@ -48,7 +48,7 @@ from selfcontra_ros.confidence.forest import ForestModel, load_model
 from selfcontra_ros.errors import SelfContraError
 from selfcontra_ros.labeler import LabelerParams
 from selfcontra_ros.matching.base import to_grey
-from selfcontra_ros.stages.voting import band_background
+from selfcontra_ros.stages.voting import band_background, band_backgrounds
 
 __all__ = [
     "FEATURES",
@@ -163,14 +163,15 @@ def edge_distances(
     left_px, other_px = labeler.stage2_edge_occluded_side_px, labeler.stage2_edge_other_px
     own = d[rows, cols]
     out = np.full((rows.size, 3), np.float32(left_px + 1), dtype=np.float32)
+    jobs = []  # (reach k, output column, window)
     for k in range(max(left_px, other_px), 0, -1):  # downwards: the smallest reach that holds a drop wins
         windows = [(min(k, left_px), min(k, other_px)), (min(k, left_px), 0)]
         if k <= other_px:
             windows.append((0, k))
-        for j, (occluded, other) in enumerate(windows):
-            smallest = band_background(d, occluded_side_px=occluded, other_px=other)[rows, cols]
-            with np.errstate(invalid="ignore"):
-                out[own - smallest > labeler.stage2_edge_jump_px, j] = k
+        jobs += [(k, j, window) for j, window in enumerate(windows)]
+    for (k, j, _), smallest in zip(jobs, band_backgrounds(d, [window for _, _, window in jobs]), strict=True):
+        with np.errstate(invalid="ignore"):
+            out[own - smallest[rows, cols] > labeler.stage2_edge_jump_px, j] = k
     return out
 
 

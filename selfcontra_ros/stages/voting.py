@@ -53,6 +53,7 @@ has no evidence at all.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 
 import cv2
@@ -71,6 +72,7 @@ __all__ = [
     "OCCLUSION_VOTES",
     "VotingResult",
     "band_background",
+    "band_backgrounds",
     "consistency_voting",
     "contradicted_positives",
     "fattening_band",
@@ -258,14 +260,27 @@ def band_background(disparity: NDArray[np.floating], *, occluded_side_px: int, o
     For a band pixel this is the background level beyond its disparity drop: the disparity a fattened pixel
     should have had.
     """
+    (smallest,) = band_backgrounds(disparity, [(occluded_side_px, other_px)])
+    return smallest
+
+
+def band_backgrounds(
+    disparity: NDArray[np.floating], windows: Iterable[tuple[int, int]]
+) -> Iterator[NDArray[np.float32]]:
+    """:func:`band_background` for each ``(occluded_side_px, other_px)`` of ``windows``, in order.
+
+    The invalid pixels are set to inf once for all windows (that copy costs more than a window's minimum).
+    """
     d = np.asarray(disparity, dtype=np.float32)
     filled = np.where(np.isfinite(d) & (d > 0), d, np.float32(np.inf)).astype(np.float32)
-    kernel = np.ones((2 * other_px + 1, occluded_side_px + other_px + 1), np.uint8)
-    # Erosion is a moving minimum; the anchor puts the pixel ``occluded_side_px`` columns from the window's left.
-    return np.asarray(
-        cv2.erode(filled, kernel, anchor=(occluded_side_px, other_px), borderType=cv2.BORDER_REPLICATE),
-        dtype=np.float32,
-    )
+    for occluded_side_px, other_px in windows:
+        kernel = np.ones((2 * other_px + 1, occluded_side_px + other_px + 1), np.uint8)
+        # Erosion is a moving minimum; the anchor puts the pixel ``occluded_side_px`` columns from the window's
+        # left.
+        yield np.asarray(
+            cv2.erode(filled, kernel, anchor=(occluded_side_px, other_px), borderType=cv2.BORDER_REPLICATE),
+            dtype=np.float32,
+        )
 
 
 def hole_margin(disparity: NDArray[np.floating], margin_px: float) -> NDArray[np.bool_]:
