@@ -430,6 +430,26 @@ def test_flush_on_shutdown_waits_for_a_slow_labeling_worker(
     assert node.stats()["drops"].get("shutdown_discarded", 0) == 0
 
 
+def test_reliable_input_keeps_every_message_while_the_node_is_behind(
+    frames: Frames, params_file: Path, ros_node: Any, labeler_node: Callable[..., Any]
+) -> None:
+    """input_qos reliable: a node that takes no message while a whole sequence is published (an executor
+    far behind, as on a loaded machine) still gets every frame and pose, and labels as the session does. The
+    subscriptions keep every unread message; with a keep-last history of 5 (queue_size 2) the reader would
+    silently overwrite the first frames, and the missing poses would make others' poses interpolations."""
+    node = labeler_node(queue_size=2)
+    feeder = Feeder(ros_node)
+    recorder = Recorder(ros_node)
+    assert spin_nodes([node, ros_node], lambda: feeder.matched() and recorder.matched(), WAIT_S)
+    for k in range(FRAMES):
+        feeder.frame(frames, k)
+    time.sleep(1.0)  # every message reaches the node's reader before it takes one
+    done = spin_nodes([node, ros_node], lambda: recorder.count(topics.LABELS_COLOR) >= FRAMES - DELAY, WAIT_S)
+    assert done, (recorder.stats, node.stats())
+    assert node.stats()["counts"]["frames"] == FRAMES
+    check_outputs(recorder, frames, params_file, flushed=False)
+
+
 def test_odometry_pose_source(
     frames: Frames, params_file: Path, ros_node: Any, labeler_node: Callable[..., Any]
 ) -> None:
