@@ -360,7 +360,8 @@ def _forest_seed(text: str) -> int:
 
 
 def add_band_prior_options(parser: argparse.ArgumentParser, *, prefix: str = "self labels only") -> None:
-    """``--band-negatives``, ``--band-look`` and ``--band-cue``: the band prior of training on self labels.
+    """``--band-negatives``, ``--band-look``, ``--band-cue`` and ``--band-texture``: the band prior of training on
+    self labels.
 
     :func:`band_prior` turns them into a :class:`~selfcontra_ros.confidence.training.BandPrior`; ``prefix``
     starts each help text (the label benchmark says where it applies).
@@ -390,13 +391,22 @@ def add_band_prior_options(parser: argparse.ArgumentParser, *, prefix: str = "se
         help=f"{prefix}: band pixels the package's band cue calls right with at least this probability are "
         f"not drawn as negatives (default {float(TRAINING['band_cue']):g}; inf = off)",
     )
+    parser.add_argument(
+        "--band-texture",
+        type=float,
+        default=float(TRAINING["band_texture"]),
+        metavar="GREY",
+        help=f"{prefix}: band pixels whose thin vertical strip (1x9) varies by less than this many grey levels "
+        f"(mean absolute deviation) are not drawn as negatives (default {float(TRAINING['band_texture']):g}; "
+        "0 = off)",
+    )
 
 
 def band_prior(args: argparse.Namespace) -> BandPrior:
     """The :class:`~selfcontra_ros.confidence.training.BandPrior` of :func:`add_band_prior_options`' arguments."""
     from selfcontra_ros.confidence.training import BandPrior
 
-    return BandPrior(share=args.band_negatives, look=args.band_look, cue=args.band_cue)
+    return BandPrior(share=args.band_negatives, look=args.band_look, cue=args.band_cue, texture=args.band_texture)
 
 
 def _add_training_options(parser: argparse.ArgumentParser) -> None:

@@ -152,9 +152,17 @@ MAX_FOREST_SEED = 2**32 - 1
 #: is at least this stay out of the draw (``inf``: every one is drawn, as before the look; -1 measured in
 #: ``docs/label_quality.md``); ``band_cue``: of those, the ones the band cue
 #: (:mod:`~selfcontra_ros.confidence.band_cue`) calls right with at least this probability stay out too
-#: (``inf``: off).
+#: (``inf``: off); ``band_texture``: and so do those whose thin strip's texture (the cue's ``strip_texture``,
+#: grey levels) is below this (0: off).
 TRAINING = MappingProxyType(
-    {"max_per_class": 10000, "seed": 0, "band_negatives": 1.0, "band_look": float("inf"), "band_cue": 0.5}
+    {
+        "max_per_class": 10000,
+        "seed": 0,
+        "band_negatives": 1.0,
+        "band_look": float("inf"),
+        "band_cue": 0.5,
+        "band_texture": 2.0,
+    }
 )
 
 #: The look of a band pixel (:func:`~selfcontra_ros.confidence.training.band_look_scores`): windows (rows,

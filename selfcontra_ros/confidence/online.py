@@ -125,6 +125,8 @@ class ConfidenceParams:
             --band-look``; ``inf``: off, the default).
         band_cue: of those, the ones the band cue calls right with at least this probability stay out of the
             draw (as ``selfcontra train --band-cue``; ``inf``: off).
+        band_texture: and so do those whose thin strip varies by less than this many grey levels (as
+            ``selfcontra train --band-texture``; 0: off).
         n_estimators: trees of the online forest.
         max_depth: depth limit of each tree.
         min_samples_leaf: smallest leaf, samples.
@@ -142,6 +144,7 @@ class ConfidenceParams:
     band_negatives: float = float(constants.TRAINING["band_negatives"])
     band_look: float = float(constants.TRAINING["band_look"])
     band_cue: float = float(constants.TRAINING["band_cue"])
+    band_texture: float = float(constants.TRAINING["band_texture"])
     n_estimators: int = 10
     max_depth: int = 12
     min_samples_leaf: int = 20
@@ -166,19 +169,21 @@ class ConfidenceParams:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise SelfContraError(f"ConfidenceParams.{name} must be an integer >= 1, got {value!r}")
-        for name in ("band_negatives", "band_look", "band_cue"):
+        for name in ("band_negatives", "band_look", "band_cue", "band_texture"):
             if not isinstance(getattr(self, name), float):
                 raise SelfContraError(f"ConfidenceParams.{name} must be a number, got {getattr(self, name)!r}")
         try:
             self.band_prior()
         except SelfContraError as exc:
-            raise SelfContraError(f"ConfidenceParams.band_negatives / band_look / band_cue: {exc}") from exc
+            raise SelfContraError(
+                f"ConfidenceParams.band_negatives / band_look / band_cue / band_texture: {exc}"
+            ) from exc
         if isinstance(self.max_depth, bool) or not isinstance(self.max_depth, int) or self.max_depth < 1:
             raise SelfContraError(f"ConfidenceParams.max_depth must be an integer >= 1, got {self.max_depth!r}")
 
     def band_prior(self) -> BandPrior:
         """The band prior of the labelled views (:class:`~selfcontra_ros.confidence.training.BandPrior`)."""
-        return BandPrior(share=self.band_negatives, look=self.band_look, cue=self.band_cue)
+        return BandPrior(share=self.band_negatives, look=self.band_look, cue=self.band_cue, texture=self.band_texture)
 
     def forest(self) -> dict[str, Any]:
         """Forest overrides for :func:`~selfcontra_ros.confidence.forest.fit_forest`."""

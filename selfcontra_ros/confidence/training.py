@@ -27,6 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from selfcontra_ros.confidence import constants
+from selfcontra_ros.confidence.band_cue import FEATURES as BAND_CUE_FEATURES
 from selfcontra_ros.confidence.band_cue import band_cue_features, default_band_cue
 from selfcontra_ros.confidence.features import FeatureContext, compute_features, feature_names
 from selfcontra_ros.confidence.forest import ForestModel, fit_forest
@@ -95,11 +96,14 @@ class BandPrior:
         look: band pixels whose look (:func:`band_look_scores`) is at least this are not drawn (``inf``: off).
         cue: band pixels the band cue (:mod:`~selfcontra_ros.confidence.band_cue`) calls right with at least
             this probability are not drawn (``inf``: off).
+        texture: band pixels whose thin strip's texture (the band cue's ``strip_texture``, grey levels) is
+            below this are not drawn (0: off).
     """
 
     share: float = float(constants.TRAINING["band_negatives"])
     look: float = float(constants.TRAINING["band_look"])
     cue: float = float(constants.TRAINING["band_cue"])
+    texture: float = float(constants.TRAINING["band_texture"])
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.share <= 1.0:
@@ -108,6 +112,8 @@ class BandPrior:
             raise SelfContraError("the band prior's look must be a number (inf: off), got NaN")
         if not (0.0 <= self.cue <= 1.0 or self.cue == math.inf):
             raise SelfContraError(f"the band prior's cue must be a probability in [0, 1] or inf (off), got {self.cue}")
+        if not (math.isfinite(self.texture) and self.texture >= 0):
+            raise SelfContraError(f"the band prior's texture must be >= 0 grey levels (0: off), got {self.texture}")
 
     def metadata(self) -> dict[str, Any]:
         """The prior as a model file records it (JSON: an infinite look or cue, i.e. off, is None)."""
@@ -115,6 +121,7 @@ class BandPrior:
             "band_negatives": float(self.share),
             "band_look": float(self.look) if math.isfinite(self.look) else None,
             "band_cue": float(self.cue) if math.isfinite(self.cue) else None,
+            "band_texture": float(self.texture),
         }
 
     def apply(
@@ -138,6 +145,7 @@ class BandPrior:
             labeler=labeler,
             right=right,
             cue=self.cue,
+            texture=self.texture,
         )
 
 
@@ -212,6 +220,8 @@ def band_look_scores(
 
 #: The labeler parameters that shape the fattening band (:func:`~selfcontra_ros.stages.voting.fattening_band`).
 BAND_KEYS = ("stage2_edge_jump_px", "stage2_edge_occluded_side_px", "stage2_edge_other_px")
+# The band cue's column of the strip's texture (BandPrior.texture).
+_STRIP_TEXTURE = BAND_CUE_FEATURES.index("strip_texture")
 
 
 def band_labeler(recorded: Mapping[str, Any] | None) -> LabelerParams | None:
@@ -283,6 +293,7 @@ def band_negatives(
     right: NDArray[np.uint8] | None = None,
     cue: float = float("inf"),
     cue_model: ForestModel | None = None,
+    texture: float = 0.0,
 ) -> NDArray[np.uint8]:
     """``label_image`` with the unknown pixels of the query's fattening band drawn as negatives for training.
 
@@ -304,7 +315,14 @@ def band_negatives(
     should trust. Pixels whose look cannot be computed are drawn.
 
     With a finite ``cue`` the band pixels the band cue (:mod:`~selfcontra_ros.confidence.band_cue`) calls right
-    with a probability of at least ``cue`` stay out of the draw too.
+    with a probability of at least ``cue`` stay out of the draw too. With ``texture`` > 0 so do the band pixels
+    whose thin strip (the cue's ``strip_texture``: 1x9 pixels, mean absolute deviation) varies by less than
+    ``texture`` grey levels. Not because they are right (on the synthetic street and room most of them are
+    wrong; on orbit and the real pairs most are right) but because the labels hold few textureless
+    positives (an ambiguous match casts no vote, ``ambiguity_min_texture``, so a flat surface is rarely
+    confirmed): drawn as
+    negatives they teach the forest that a flat patch is an error, whatever its depth, which no feature of a
+    right flat patch elsewhere can correct (measured in ``docs/label_quality.md``).
 
     Args:
         label_image: HxW codes (0 unknown, 1 positive, 2 negative).
@@ -320,13 +338,15 @@ def band_negatives(
         right: the right image of the pair; needed for a finite ``cue``.
         cue: band pixels the band cue calls right with at least this probability are not drawn; ``inf``: off.
         cue_model: the band cue; None: the package's (:func:`~selfcontra_ros.confidence.band_cue.default_band_cue`).
+        texture: band pixels whose strip texture is below this many grey levels are not drawn; 0: off (needs
+            both images, as the cue).
 
     Returns:
         HxW uint8 codes; labelled pixels are never changed.
 
     Raises:
         SelfContraError: shapes that do not match, a finite ``look`` without an image, or a finite ``cue``
-            without both images.
+            or a ``texture`` > 0 without both images.
     """
     labels = np.asarray(label_image).astype(np.uint8)
     if labels.shape != np.shape(disparity):
@@ -338,20 +358,26 @@ def band_negatives(
     picked = band & (labels == UNKNOWN)
     if share < 1:
         picked &= rng.random(labels.shape) < share
-    if not (math.isfinite(look) or math.isfinite(cue)) or not picked.any():
+    strip = math.isfinite(cue) or texture > 0  # both read the band cue's features
+    if not (math.isfinite(look) or strip) or not picked.any():
         labels[picked] = NEGATIVE
         return labels
-    if image is None or (math.isfinite(cue) and right is None):
-        raise SelfContraError("band_negatives: a finite look needs the left image, a finite cue both images")
+    if image is None or (strip and right is None):
+        raise SelfContraError(
+            "band_negatives: a finite look needs the left image, a finite cue or a texture > 0 both images"
+        )
     if np.shape(image)[:2] != labels.shape:
         raise SelfContraError(f"image {np.shape(image)} does not match the disparity map {labels.shape}")
     rows, cols = np.nonzero(picked)
     scores = band_look_scores(image, disparity, band, rows, cols, jump_px=p.stage2_edge_jump_px)
     kept = scores >= look  # NaN compares False: drawn
-    if math.isfinite(cue):
+    if strip:
         assert right is not None
-        model = cue_model if cue_model is not None else default_band_cue()
-        kept |= model.predict(band_cue_features(image, right, disparity, rows, cols, scores, p)) >= cue
+        features = band_cue_features(image, right, disparity, rows, cols, scores, p)
+        if math.isfinite(cue):
+            model = cue_model if cue_model is not None else default_band_cue()
+            kept |= model.predict(features) >= cue
+        kept |= features[:, _STRIP_TEXTURE] < texture
     picked[rows[kept], cols[kept]] = False
     labels[picked] = NEGATIVE
     return labels

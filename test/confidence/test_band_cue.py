@@ -15,6 +15,7 @@ from selfcontra_ros.confidence.band_cue import (
     default_band_cue,
     edge_distances,
 )
+from selfcontra_ros.confidence.constants import TRAINING
 from selfcontra_ros.confidence.forest import ForestModel, fit_forest, load_model, save_model
 from selfcontra_ros.confidence.kernels import strip_costs
 from selfcontra_ros.confidence.training import BandPrior, band_look_scores, band_negatives, prior_band
@@ -185,12 +186,44 @@ def test_band_negatives_leave_out_what_the_cue_calls_right(stereo_edge: dict[str
     assert drawn[inner, edge - fattened : edge].mean() > 0.8
     assert drawn[inner, edge : edge + 12].mean() < 0.2
     # The prior as one object: the same draw, and what a model records of it.
-    prior = BandPrior(share=1.0, look=float("inf"), cue=0.5)
+    prior = BandPrior(share=1.0, look=float("inf"), cue=0.5, texture=0.0)
     same = prior.apply(labels, query, rng, left=left, right=right) == NEGATIVE
     assert np.array_equal(same, drawn)
-    assert prior.metadata() == {"band_negatives": 1.0, "band_look": None, "band_cue": 0.5}
+    assert prior.metadata() == {"band_negatives": 1.0, "band_look": None, "band_cue": 0.5, "band_texture": 0.0}
+    assert BandPrior().metadata()["band_texture"] == TRAINING["band_texture"]
     with pytest.raises(SelfContraError, match="both images"):
         band_negatives(labels, query, 1.0, rng, image=left, cue=0.7)
-    for bad in ({"share": 1.5}, {"look": float("nan")}, {"cue": 1.2}, {"cue": float("nan")}):
+    with pytest.raises(SelfContraError, match="both images"):
+        band_negatives(labels, query, 1.0, rng, image=left, texture=2.0)
+    bad_priors = ({"share": 1.5}, {"look": float("nan")}, {"cue": 1.2}, {"cue": float("nan")}, {"texture": -1.0})
+    for bad in (*bad_priors, {"texture": float("inf")}):
         with pytest.raises(SelfContraError, match="band prior"):
             BandPrior(**bad)  # type: ignore[arg-type]
+
+
+def test_band_negatives_leave_out_band_pixels_whose_strip_has_no_texture(stereo_edge: dict[str, Any]) -> None:
+    """texture: the band pixels whose 1x9 strip varies by less than that many grey levels are not drawn, exactly
+    those (the cue's strip_texture), whatever the cue; 0 leaves the draw as it was."""
+    left, right, query = stereo_edge["left"].copy(), stereo_edge["right"].copy(), stereo_edge["query"]
+    left[20:41], right[20:41] = 120, 120  # a flat stripe across the edge, in both images
+    labels = np.zeros(query.shape, np.uint8)
+    rng = np.random.default_rng(0)
+    kwargs: dict[str, Any] = {"image": left, "right": right}
+    everything = band_negatives(labels, query, 1.0, rng) == NEGATIVE
+    assert np.array_equal(band_negatives(labels, query, 1.0, rng, texture=0.0, **kwargs) == NEGATIVE, everything)
+    drawn = band_negatives(labels, query, 1.0, rng, texture=2.0, **kwargs) == NEGATIVE
+    rows, cols = np.nonzero(everything)
+    look = np.full(rows.size, np.nan, np.float32)
+    texture = band_cue_features(left, right, query, rows, cols, look, LabelerParams())[
+        :, FEATURES.index("strip_texture")
+    ]
+    assert np.array_equal(drawn[rows, cols], texture >= 2.0)
+    assert not drawn[24:37].any()  # every strip inside the stripe is flat
+    assert np.array_equal(drawn[:12], everything[:12]) and np.array_equal(drawn[49:], everything[49:])
+    # With the cue as well, a pixel leaves the draw if either rule says so.
+    both = band_negatives(labels, query, 1.0, rng, cue=0.5, texture=2.0, **kwargs) == NEGATIVE
+    cue_only = band_negatives(labels, query, 1.0, rng, cue=0.5, **kwargs) == NEGATIVE
+    assert np.array_equal(both, cue_only & drawn)
+    prior = BandPrior(share=1.0, look=float("inf"), cue=float("inf"), texture=2.0)
+    assert np.array_equal(prior.apply(labels, query, rng, left=left, right=right) == NEGATIVE, drawn)
+    assert prior.metadata()["band_texture"] == 2.0

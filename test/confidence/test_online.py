@@ -124,7 +124,12 @@ def test_band_look_keeps_the_objects_own_band_pixels_out_of_the_reservoir(
     seen = {}
     for look in (float("inf"), -1.0):
         params = ConfidenceParams(
-            retrain_every=100, samples_per_view=5000, band_look=look, band_cue=float("inf"), **TINY_FOREST
+            retrain_every=100,
+            samples_per_view=5000,
+            band_look=look,
+            band_cue=float("inf"),
+            band_texture=0.0,
+            **TINY_FOREST,
         )
         online = OnlineConfidence(params, background=False, log=lambda _: None)
         online.add_labelled(frame, labels)
@@ -133,7 +138,12 @@ def test_band_look_keeps_the_objects_own_band_pixels_out_of_the_reservoir(
     assert seen[float("inf")] == 40 * 20 and seen[-1.0] == 40 * 6
     # The band is that of the labeler whose views are added: 30 columns with a wider left reach.
     params = ConfidenceParams(
-        retrain_every=100, samples_per_view=5000, band_look=float("inf"), band_cue=float("inf"), **TINY_FOREST
+        retrain_every=100,
+        samples_per_view=5000,
+        band_look=float("inf"),
+        band_cue=float("inf"),
+        band_texture=0.0,
+        **TINY_FOREST,
     )
     wide = LabelerParams(stage2_edge_occluded_side_px=30)
     online = OnlineConfidence(params, background=False, log=lambda _: None, labeler=wide)

@@ -13,7 +13,7 @@ import pytest
 from selfcontra_ros.cli import main
 from selfcontra_ros.confidence import constants
 from selfcontra_ros.confidence.commands import _label_source, iter_frames, train_command
-from selfcontra_ros.confidence.constants import BAND_LOOK_MIN_COUNT, BAND_LOOK_SMOOTHING
+from selfcontra_ros.confidence.constants import BAND_LOOK_MIN_COUNT, BAND_LOOK_SMOOTHING, TRAINING
 from selfcontra_ros.confidence.features import FeatureContext
 from selfcontra_ros.confidence.forest import load_model
 from selfcontra_ros.confidence.inputs import query_feature_input
@@ -270,12 +270,14 @@ def test_train_command_line_takes_the_share(labelled: tuple[Path, Path], tmp_pat
     assert main([*base, "--out", str(tmp_path / "band.npz")]) == 0
     metadata = load_model(tmp_path / "band.npz").metadata
     assert metadata["feature_set"] == "gcp"
-    assert metadata["sampling"] == {"band_negatives": 1.0, "band_look": None, "band_cue": 0.5}  # the defaults
-    options = ["--band-look", "-1", "--band-cue", "inf"]
+    defaults = {"band_negatives": 1.0, "band_look": None, "band_cue": 0.5, "band_texture": TRAINING["band_texture"]}
+    assert metadata["sampling"] == defaults
+    options = ["--band-look", "-1", "--band-cue", "inf", "--band-texture", "3"]
     assert main([*base, "--out", str(tmp_path / "look.npz"), *options]) == 0
     recorded = load_model(tmp_path / "look.npz").metadata["sampling"]
-    assert recorded == {"band_negatives": 1.0, "band_look": -1.0, "band_cue": None}
+    assert recorded == {"band_negatives": 1.0, "band_look": -1.0, "band_cue": None, "band_texture": 3.0}
     assert main([*base, "--out", str(tmp_path / "bad.npz"), "--band-cue", "2"]) == 2  # not a probability
+    assert main([*base, "--out", str(tmp_path / "bad.npz"), "--band-texture", "-1"]) == 2
     summary = train_command([(data, "gt")], "gcp", tmp_path / "gt.npz", forest=SMALL_FOREST, matcher=MATCHER)
     assert "sampling" not in load_model(summary["model"]).metadata  # ground truth is taken as it is
 
