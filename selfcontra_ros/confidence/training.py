@@ -318,11 +318,10 @@ def band_negatives(
     with a probability of at least ``cue`` stay out of the draw too. With ``texture`` > 0 so do the band pixels
     whose thin strip (the cue's ``strip_texture``: 1x9 pixels, mean absolute deviation) varies by less than
     ``texture`` grey levels. Not because they are right (on the synthetic street and room most of them are
-    wrong; on orbit and the real pairs most are right) but because the labels hold few textureless
-    positives (an ambiguous match casts no vote, ``ambiguity_min_texture``, so a flat surface is rarely
-    confirmed): drawn as
-    negatives they teach the forest that a flat patch is an error, whatever its depth, which no feature of a
-    right flat patch elsewhere can correct (measured in ``docs/label_quality.md``).
+    wrong; on orbit and the real pairs most are right) but because the labels hold few textureless positives
+    (an ambiguous match casts no vote, ``ambiguity_min_texture``, so a flat surface is rarely confirmed):
+    drawn as negatives they teach the forest that a flat patch is an error, whatever its depth (measured in
+    ``docs/label_quality.md``).
 
     Args:
         label_image: HxW codes (0 unknown, 1 positive, 2 negative).
