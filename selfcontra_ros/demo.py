@@ -10,8 +10,9 @@
    they must be equal (same core, same result).
 
 Network safety: the Makefile runs this with ``ROS_AUTOMATIC_DISCOVERY_RANGE=
-LOCALHOST`` and a domain of its own; run directly, the demo sets the discovery
-range to LOCALHOST itself unless it is set.
+LOCALHOST`` and a domain of its own; run directly, the demo sets both itself
+unless they are set (LOCALHOST and the Makefile's domain, 73), so that its
+nodes neither leave the machine nor meet a robot's nodes on the default domain.
 """
 
 from __future__ import annotations
@@ -41,6 +42,8 @@ __all__ = ["main"]
 # offline labeler does at the end of the bag.
 _LABEL_QUEUE = 256
 _WAIT_S = 900.0
+# The Makefile's domain: run directly, the demo keeps off the default domain 0 a robot's nodes use.
+_DEFAULT_DOMAIN = "73"
 
 
 def _format(mean: dict[str, Any]) -> str:
@@ -220,6 +223,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--size", default="620x188", help="image size WxH (default 620x188: a half-size KITTI)")
     args = parser.parse_args(argv)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    os.environ.setdefault("ROS_DOMAIN_ID", _DEFAULT_DOMAIN)
 
     from selfcontra_ros.bags.kitti2mcap import kitti_to_mcap
     from selfcontra_ros.bags.label_bag import label_bag
