@@ -36,6 +36,7 @@ __all__ = [
     "forest_layout",
     "forest_predict",
     "strip_costs",
+    "window_costs",
 ]
 
 I64 = NDArray[np.int64]
@@ -739,6 +740,117 @@ def strip_costs(
             d1,
             int(max_disparity),
             int(half_height),
+        )
+    )
+
+
+@njit(cache=True)
+def _window_cost(
+    left: F32, right: F32, r: int, c: int, disparity: float, half: int, before: int, after: int
+) -> tuple[float, float]:  # pragma: no cover - compiled
+    """Zero-mean mean absolute difference of a left window and the right one ``disparity`` left of it, and the
+    left window's mean absolute deviation (rows ``r +- half``, columns ``c - before .. c + after``, clamped)."""
+    height, width = right.shape
+    mean_left = 0.0
+    mean_right = 0.0
+    for i in range(-half, half + 1):
+        y = min(max(r + i, 0), height - 1)
+        for j in range(-before, after + 1):
+            u = min(max(c + j, 0), width - 1)
+            x = min(max(u - disparity, 0.0), width - 1.0)
+            x0 = min(math.floor(x), width - 2)
+            t = x - x0
+            mean_left += left[y, u]
+            mean_right += (1.0 - t) * right[y, x0] + t * right[y, x0 + 1]
+    n = (2 * half + 1) * (before + after + 1)
+    mean_left /= n
+    mean_right /= n
+    cost = 0.0
+    texture = 0.0
+    for i in range(-half, half + 1):
+        y = min(max(r + i, 0), height - 1)
+        for j in range(-before, after + 1):
+            u = min(max(c + j, 0), width - 1)
+            x = min(max(u - disparity, 0.0), width - 1.0)
+            x0 = min(math.floor(x), width - 2)
+            t = x - x0
+            a = left[y, u] - mean_left
+            cost += abs(a - ((1.0 - t) * right[y, x0] + t * right[y, x0 + 1] - mean_right))
+            texture += abs(a)
+    return cost / n, texture / n
+
+
+@njit(cache=True, parallel=True)
+def _window_costs(
+    left: F32, right: F32, rows: I64, cols: I64, disparities: F32, half: int, before: int, after: int
+) -> F32:  # pragma: no cover - compiled
+    n_disparities = disparities.shape[1]
+    out = np.empty((rows.size, n_disparities + 1), np.float32)
+    for k in prange(rows.size):
+        texture = 0.0
+        for j in range(n_disparities):
+            out[k, j], texture = _window_cost(left, right, rows[k], cols[k], disparities[k, j], half, before, after)
+        out[k, n_disparities] = texture
+    return out
+
+
+def window_costs(
+    left: NDArray[np.floating],
+    right: NDArray[np.floating],
+    rows: NDArray[np.integer],
+    cols: NDArray[np.integer],
+    disparities: NDArray[np.floating],
+    *,
+    half_height: int,
+    before: int,
+    after: int,
+) -> F32:
+    """Matching costs of a window at each pixel ``(rows[k], cols[k])`` of the left image, at given disparities.
+
+    The window covers rows ``half_height`` above to as many below and columns ``before`` left of the pixel to
+    ``after`` right of it (clamped to the image), so it can lie on one side of the pixel: a window that ends at
+    the pixel sees what lies left of it, one that starts there what lies right of it. Its cost at a disparity
+    ``d`` is :func:`strip_costs`' (zero-mean mean absolute difference to the right image ``d`` columns to the
+    left, linearly interpolated, the column clamped to the image); ``before = after = 0`` is that strip.
+
+    Args:
+        left, right: HxW float grey images of the rectified pair.
+        rows, cols: (N,) pixels to score.
+        disparities: (N, K) disparities to cost each pixel's window at.
+        half_height, before, after: the window's reach, pixels (each >= 0).
+
+    Returns:
+        (N, K + 1) float32: the cost at each of the K disparities, then the window's texture (mean absolute
+        deviation of the left window from its mean), grey levels.
+
+    Raises:
+        ValueError: images of different shapes, pixels and disparities that do not match or lie outside, a
+            negative reach or a non-finite disparity.
+    """
+    shape = np.shape(left)
+    if np.shape(right) != shape or len(shape) != 2 or shape[1] < 2:
+        raise ValueError(f"window_costs: left {shape} and right {np.shape(right)} must be one HxW shape, W >= 2")
+    r: I64 = np.ascontiguousarray(rows, dtype=np.int64)
+    c: I64 = np.ascontiguousarray(cols, dtype=np.int64)
+    d: F32 = np.ascontiguousarray(disparities, dtype=np.float32)
+    if r.ndim != 1 or r.shape != c.shape or d.ndim != 2 or d.shape[0] != r.size:
+        raise ValueError("window_costs: rows and cols must be (N,) arrays and disparities (N, K) of the same N")
+    if min(half_height, before, after) < 0:
+        raise ValueError(f"window_costs: the window's reach must be >= 0, got {half_height}, {before}, {after}")
+    if r.size and (r.min() < 0 or r.max() >= shape[0] or c.min() < 0 or c.max() >= shape[1]):
+        raise ValueError(f"window_costs: pixels must lie inside the {shape} image")
+    if not np.isfinite(d).all():
+        raise ValueError("window_costs: disparities must be finite")
+    return np.asarray(
+        _window_costs(
+            np.ascontiguousarray(left, dtype=np.float32),
+            np.ascontiguousarray(right, dtype=np.float32),
+            r,
+            c,
+            d,
+            int(half_height),
+            int(before),
+            int(after),
         )
     )
 

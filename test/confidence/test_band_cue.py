@@ -17,7 +17,7 @@ from selfcontra_ros.confidence.band_cue import (
 )
 from selfcontra_ros.confidence.constants import TRAINING
 from selfcontra_ros.confidence.forest import ForestModel, fit_forest, load_model, save_model
-from selfcontra_ros.confidence.kernels import strip_costs
+from selfcontra_ros.confidence.kernels import strip_costs, window_costs
 from selfcontra_ros.confidence.training import BandPrior, band_look_scores, band_negatives, prior_band
 from selfcontra_ros.errors import SelfContraError
 from selfcontra_ros.labeler import LabelerParams
@@ -63,6 +63,50 @@ def test_strip_costs_match_the_written_out_strips() -> None:
         strip_costs(left, right, rows[:1], cols[:1], np.array([np.nan]), own[:1], max_disparity=4, half_height=3)
 
 
+def _window_reference(
+    left: np.ndarray, right: np.ndarray, r: int, c: int, d: float, half: int, before: int, after: int
+) -> tuple[float, float]:
+    """The window's zero-mean mean absolute difference and its texture, written out column by column."""
+    height, width = left.shape
+    ys = np.clip(np.arange(r - half, r + half + 1), 0, height - 1)
+    a_cols, b_cols = [], []
+    for u in np.clip(np.arange(c - before, c + after + 1), 0, width - 1):
+        x = min(max(u - d, 0.0), width - 1.0)
+        x0 = min(int(np.floor(x)), width - 2)
+        t = x - x0
+        a_cols.append(left[ys, u].astype(np.float64))
+        b_cols.append((1 - t) * right[ys, x0].astype(np.float64) + t * right[ys, x0 + 1])
+    a, b = np.concatenate(a_cols), np.concatenate(b_cols)
+    return float(np.mean(np.abs((a - a.mean()) - (b - b.mean())))), float(np.mean(np.abs(a - a.mean())))
+
+
+def test_window_costs_match_the_written_out_windows_and_the_strip() -> None:
+    rng = np.random.default_rng(3)
+    left = rng.uniform(0, 255, (30, 50)).astype(np.float32)
+    right = rng.uniform(0, 255, (30, 50)).astype(np.float32)
+    rows = np.array([0, 29, 15, 3, 10, 20])
+    cols = np.array([0, 49, 25, 2, 40, 6])
+    pairs = np.array([[0.0, 0.0], [12.5, 2.0], [3.25, 24.75], [7.0, 0.5], [39.9, 1.0], [6.0, 0.0]], np.float32)
+    for half, before, after in [(2, 4, 0), (2, 0, 4), (8, 0, 0), (1, 3, 2)]:
+        got = window_costs(left, right, rows, cols, pairs, half_height=half, before=before, after=after)
+        assert got.shape == (6, 3) and got.dtype == np.float32
+        for k, (r, c) in enumerate(zip(rows, cols, strict=True)):
+            (own, texture), (background, _) = (
+                _window_reference(left, right, r, c, float(d), half, before, after) for d in pairs[k]
+            )
+            np.testing.assert_allclose(got[k], [own, background, texture], rtol=1e-4, atol=1e-3)
+    # A window one column wide is the strip.
+    strip = strip_costs(left, right, rows, cols, pairs[:, 0], pairs[:, 1], max_disparity=0, half_height=3)
+    got = window_costs(left, right, rows, cols, pairs, half_height=3, before=0, after=0)
+    np.testing.assert_allclose(got, strip[:, [0, 1, 3]], rtol=1e-4, atol=1e-3)
+    with pytest.raises(ValueError, match="inside"):
+        window_costs(left, right, np.array([30]), np.array([0]), pairs[:1], half_height=1, before=0, after=0)
+    with pytest.raises(ValueError, match="finite"):
+        window_costs(left, right, rows[:1], cols[:1], np.array([[np.nan, 1.0]]), half_height=1, before=0, after=0)
+    with pytest.raises(ValueError, match=">= 0"):
+        window_costs(left, right, rows, cols, pairs, half_height=1, before=-1, after=0)
+
+
 def test_band_background_is_the_smallest_disparity_of_the_band_window() -> None:
     rng = np.random.default_rng(1)
     d = rng.uniform(1, 60, (25, 40)).astype(np.float32)
@@ -94,6 +138,14 @@ def test_band_cue_features_tell_fattened_pixels_from_the_objects_own(stereo_edge
     assert np.median(column["strip_own_vs_background"][own]) < -5
     assert np.percentile(column["strip_own_vs_best"][own], 90) < 0.5
     assert np.median(column["strip_own_vs_best"][fattened]) > 5
+    # The window right of an object pixel lies on the object: it matches at the pixel's disparity, not at the
+    # background's; the fattened pixels' windows and strips match at neither (they are hidden from the right
+    # camera). Next to the outline an object pixel's left window takes in that hidden background.
+    assert np.percentile(column["right_own_vs_background"][own], 90) < -5
+    for strip in ("short_own_vs_background", "tall_own_vs_background"):
+        assert np.median(column[strip][own]) < -5 < np.median(column[strip][fattened])
+    assert np.median(column["right_own_vs_background"][fattened]) > -5
+    assert np.median(column["own_left_vs_right"][own & (cols < edge + 4)]) > 2
     # The look: like the object's interior on its own pixels, like the background on the fattened ones.
     assert np.median(column["look"][own]) > 0 > np.median(column["look"][fattened])
     np.testing.assert_allclose(column["drop"], 20.0)
