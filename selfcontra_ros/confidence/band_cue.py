@@ -24,18 +24,14 @@ a probability of being right from cues a square matching window cannot see:
                             and min(k, 4) px right, up and down, that holds it; 21 where none does
 ``edge_distance_row``       the same with the window in the pixel's row, to its left only
 ``edge_distance_other``     the same with the window right, up and down only (k <= 4 px)
-``left_own_vs_background``  cost of a 5x5 window that ends at the pixel (:func:`~selfcontra_ros.confidence.
-                            kernels.window_costs`, 4 px to its left) at its own disparity minus at the
-                            background's
-``right_own_vs_background``  the same of a 5x5 window that starts at the pixel (4 px to its right)
-``left_texture``            the left window's mean absolute deviation, grey levels
-``right_texture``           the right window's
-``own_left_vs_right``       at the pixel's own disparity, the left window's cost minus the right window's
+``own_left_vs_right``       at the pixel's own disparity, the cost of a 5x5 window that ends at the pixel (4 px
+                            to its left, :func:`~selfcontra_ros.confidence.kernels.window_costs`) minus that of
+                            one that starts there (4 px to its right)
 ``background_left_vs_right``  the same at the background's disparity
-``short_own_vs_background``  ``strip_own_vs_background`` of a 1x5 strip
-``short_texture``           its texture
-``tall_own_vs_background``  ``strip_own_vs_background`` of a 1x17 strip
-``tall_texture``            its texture
+``<window>_own_vs_background``  for each of :data:`WINDOWS` (5x5 and 9x9 windows left and right of the pixel,
+                            1x5, 1x17 and 1x33 strips): its cost at the pixel's own disparity minus at the
+                            background's
+``<window>_texture``        and its mean absolute deviation, grey levels
 ==========================  ================================================================================
 
 A fattened pixel is background carrying the object's disparity: its strip matches better at the background's
@@ -45,8 +41,8 @@ forest weigh the strip's evidence by where in the band a pixel lies. The band st
 and reaches right, across the object's left outline; left of that outline the background is hidden from the
 right camera and the matcher fills it with the object. An object pixel's right-hand window lies on the object
 and matches at the pixel's disparity; a fattened pixel's right-hand window straddles the outline and its
-left-hand one lies on background. The one-sided windows (5x5) read this where one column holds too little
-texture, the shorter and taller strips (1x5, 1x17) where the outline is not vertical over nine rows. The
+left-hand one lies on background. The one-sided windows (5x5, 9x9) read this where one column holds too little
+texture, the shorter and taller strips (1x5, 1x17, 1x33) where the outline is not vertical over nine rows. The
 extra windows cost about as much as one disparity of the strip's 128-disparity scan each.
 
 The model is fitted by
@@ -74,14 +70,25 @@ __all__ = [
     "FEATURES",
     "MAX_DISPARITY",
     "MODEL_FILE",
-    "SHORT_STRIP_HALF_HEIGHT",
-    "SIDE_WINDOW",
     "STRIP_HALF_HEIGHT",
-    "TALL_STRIP_HALF_HEIGHT",
+    "WINDOWS",
     "band_cue_features",
     "default_band_cue",
     "edge_distances",
 ]
+
+#: The windows matched at a pixel's own and its background's disparity besides the 1x9 strip
+#: (:func:`~selfcontra_ros.confidence.kernels.window_costs`): name -> (rows above and below, columns left of the
+#: pixel, columns right of it). Each gives the features ``<name>_own_vs_background`` and ``<name>_texture``.
+WINDOWS = {
+    "left": (2, 4, 0),
+    "right": (2, 0, 4),
+    "short": (2, 0, 0),
+    "tall": (8, 0, 0),
+    "wide_left": (4, 8, 0),
+    "wide_right": (4, 0, 8),
+    "taller": (16, 0, 0),
+}
 
 #: Feature columns of the band cue, in order (see the module docstring).
 FEATURES = (
@@ -95,26 +102,14 @@ FEATURES = (
     "edge_distance",
     "edge_distance_row",
     "edge_distance_other",
-    "left_own_vs_background",
-    "right_own_vs_background",
-    "left_texture",
-    "right_texture",
     "own_left_vs_right",
     "background_left_vs_right",
-    "short_own_vs_background",
-    "short_texture",
-    "tall_own_vs_background",
-    "tall_texture",
+    *(f"{name}_{part}" for name in WINDOWS for part in ("own_vs_background", "texture")),
 )
 
 #: Rows above and below a pixel in its strip (a 1x9 strip).
 STRIP_HALF_HEIGHT = 4
 
-#: The one-sided windows (rows above and below, columns beside the pixel) and the shorter and taller strips'
-#: rows above and below.
-SIDE_WINDOW = (2, 4)
-SHORT_STRIP_HALF_HEIGHT = 2
-TALL_STRIP_HALF_HEIGHT = 8
 
 #: The strip's smallest cost is searched over the whole-pixel disparities 0 .. this.
 MAX_DISPARITY = 127
@@ -175,17 +170,10 @@ def band_cue_features(
     total = at_own + at_background
     contrast = np.divide(at_own - at_background, total, out=np.zeros_like(total), where=total > 0)
     pair = np.column_stack([own, background])
-    half, side = SIDE_WINDOW
     windows = {
         name: kernels.window_costs(grey_left, grey_right, rows, cols, pair, half_height=h, before=b, after=a)
-        for name, (h, b, a) in {
-            "left": (half, side, 0),
-            "right": (half, 0, side),
-            "short": (SHORT_STRIP_HALF_HEIGHT, 0, 0),
-            "tall": (TALL_STRIP_HALF_HEIGHT, 0, 0),
-        }.items()
+        for name, (h, b, a) in WINDOWS.items()
     }
-    left_w, right_w, short, tall = windows["left"], windows["right"], windows["short"], windows["tall"]
     return np.column_stack(
         [
             np.nan_to_num(look, nan=0.0),
@@ -196,16 +184,9 @@ def band_cue_features(
             own - background,
             texture,
             edge_distances(d, rows, cols, labeler),
-            left_w[:, 0] - left_w[:, 1],
-            right_w[:, 0] - right_w[:, 1],
-            left_w[:, 2],
-            right_w[:, 2],
-            left_w[:, 0] - right_w[:, 0],
-            left_w[:, 1] - right_w[:, 1],
-            short[:, 0] - short[:, 1],
-            short[:, 2],
-            tall[:, 0] - tall[:, 1],
-            tall[:, 2],
+            windows["left"][:, 0] - windows["right"][:, 0],
+            windows["left"][:, 1] - windows["right"][:, 1],
+            *(column for w in windows.values() for column in (w[:, 0] - w[:, 1], w[:, 2])),
         ]
     ).astype(np.float32)
 
