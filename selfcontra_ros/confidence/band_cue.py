@@ -41,14 +41,13 @@ forest weigh the strip's evidence by where in the band a pixel lies. The band st
 and reaches right, across the object's left outline; left of that outline the background is hidden from the
 right camera and the matcher fills it with the object. An object pixel's right-hand window lies on the object
 and matches at the pixel's disparity; a fattened pixel's right-hand window straddles the outline and its
-left-hand one lies on background. The one-sided windows (5x5, 9x9) read this where one column holds too little
-texture, the shorter and taller strips (1x5, 1x17, 1x33) where the outline is not vertical over nine rows. The
-extra windows cost about as much as one disparity of the strip's 128-disparity scan each.
+left-hand one lies on background. The one-sided windows (5x5, 9x9) read this where one column holds too
+little texture, the shorter and taller strips (1x5, 1x17, 1x33) where the outline is not vertical over nine
+rows. Together the windows cost about half the strip's 128-disparity scan (``docs/label_quality.md``).
 
-The model is fitted by
-``bench/fit_band_cue.py`` on the tuning seeds of the synthetic scenes (the band's pixels of the default
-matcher, against the ground truth): a prior learned on synthetic ground truth, never on the user's data; its
-metadata records how.
+The model is fitted by ``bench/fit_band_cue.py`` on the tuning seeds of the synthetic scenes (the band's pixels
+of the default matcher, against the ground truth): a prior learned on synthetic ground truth, never on the
+user's data; its metadata records how.
 """
 
 from __future__ import annotations
