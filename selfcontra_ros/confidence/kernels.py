@@ -717,31 +717,34 @@ def strip_costs(
     Raises:
         ValueError: images of different shapes, or pixels and disparities that do not match or lie outside.
     """
-    shape = np.shape(left)
-    if np.shape(right) != shape or len(shape) != 2 or shape[1] < 2:
-        raise ValueError(f"strip_costs: left {shape} and right {np.shape(right)} must be one HxW shape, W >= 2")
-    r: I64 = np.ascontiguousarray(rows, dtype=np.int64)
-    c: I64 = np.ascontiguousarray(cols, dtype=np.int64)
+    grey_left, grey_right, r, c = _pair_and_pixels("strip_costs", left, right, rows, cols)
     d0: F32 = np.ascontiguousarray(own, dtype=np.float32)
     d1: F32 = np.ascontiguousarray(background, dtype=np.float32)
-    if not r.shape == c.shape == d0.shape == d1.shape or r.ndim != 1:
-        raise ValueError("strip_costs: rows, cols and both disparities must be (N,) arrays of one length")
-    if r.size and (r.min() < 0 or r.max() >= shape[0] or c.min() < 0 or c.max() >= shape[1]):
-        raise ValueError(f"strip_costs: pixels must lie inside the {shape} image")
-    if r.size and not (np.isfinite(d0).all() and np.isfinite(d1).all()):
+    if not r.shape == d0.shape == d1.shape:
+        raise ValueError("strip_costs: both disparities must be (N,) arrays, one per pixel")
+    if not (np.isfinite(d0).all() and np.isfinite(d1).all()):
         raise ValueError("strip_costs: disparities must be finite")
-    return np.asarray(
-        _strip_costs(
-            np.ascontiguousarray(left, dtype=np.float32),
-            np.ascontiguousarray(right, dtype=np.float32),
-            r,
-            c,
-            d0,
-            d1,
-            int(max_disparity),
-            int(half_height),
-        )
-    )
+    return np.asarray(_strip_costs(grey_left, grey_right, r, c, d0, d1, int(max_disparity), int(half_height)))
+
+
+def _pair_and_pixels(
+    name: str,
+    left: NDArray[np.floating],
+    right: NDArray[np.floating],
+    rows: NDArray[np.integer],
+    cols: NDArray[np.integer],
+) -> tuple[F32, F32, I64, I64]:
+    """The pair as float32 and the pixels as int64 for the window kernel ``name``; ValueError where they do not fit."""
+    shape = np.shape(left)
+    if np.shape(right) != shape or len(shape) != 2 or shape[1] < 2:
+        raise ValueError(f"{name}: left {shape} and right {np.shape(right)} must be one HxW shape, W >= 2")
+    r: I64 = np.ascontiguousarray(rows, dtype=np.int64)
+    c: I64 = np.ascontiguousarray(cols, dtype=np.int64)
+    if r.ndim != 1 or r.shape != c.shape:
+        raise ValueError(f"{name}: rows and cols must be (N,) arrays of one length")
+    if r.size and (r.min() < 0 or r.max() >= shape[0] or c.min() < 0 or c.max() >= shape[1]):
+        raise ValueError(f"{name}: pixels must lie inside the {shape} image")
+    return np.ascontiguousarray(left, dtype=np.float32), np.ascontiguousarray(right, dtype=np.float32), r, c
 
 
 @njit(cache=True)
@@ -827,32 +830,15 @@ def window_costs(
         ValueError: images of different shapes, pixels and disparities that do not match or lie outside, a
             negative reach or a non-finite disparity.
     """
-    shape = np.shape(left)
-    if np.shape(right) != shape or len(shape) != 2 or shape[1] < 2:
-        raise ValueError(f"window_costs: left {shape} and right {np.shape(right)} must be one HxW shape, W >= 2")
-    r: I64 = np.ascontiguousarray(rows, dtype=np.int64)
-    c: I64 = np.ascontiguousarray(cols, dtype=np.int64)
+    grey_left, grey_right, r, c = _pair_and_pixels("window_costs", left, right, rows, cols)
     d: F32 = np.ascontiguousarray(disparities, dtype=np.float32)
-    if r.ndim != 1 or r.shape != c.shape or d.ndim != 2 or d.shape[0] != r.size:
-        raise ValueError("window_costs: rows and cols must be (N,) arrays and disparities (N, K) of the same N")
+    if d.ndim != 2 or d.shape[0] != r.size:
+        raise ValueError("window_costs: disparities must be an (N, K) array, a row per pixel")
     if min(half_height, before, after) < 0:
         raise ValueError(f"window_costs: the window's reach must be >= 0, got {half_height}, {before}, {after}")
-    if r.size and (r.min() < 0 or r.max() >= shape[0] or c.min() < 0 or c.max() >= shape[1]):
-        raise ValueError(f"window_costs: pixels must lie inside the {shape} image")
     if not np.isfinite(d).all():
         raise ValueError("window_costs: disparities must be finite")
-    return np.asarray(
-        _window_costs(
-            np.ascontiguousarray(left, dtype=np.float32),
-            np.ascontiguousarray(right, dtype=np.float32),
-            r,
-            c,
-            d,
-            int(half_height),
-            int(before),
-            int(after),
-        )
-    )
+    return np.asarray(_window_costs(grey_left, grey_right, r, c, d, int(half_height), int(before), int(after)))
 
 
 # ==================================================================== forest
