@@ -74,6 +74,7 @@ __all__ = [
     "band_cue_features",
     "default_band_cue",
     "edge_distances",
+    "strip_textures",
 ]
 
 #: The windows matched at a pixel's own and its background's disparity besides the 1x9 strip
@@ -108,7 +109,6 @@ FEATURES = (
 
 #: Rows above and below a pixel in its strip (a 1x9 strip).
 STRIP_HALF_HEIGHT = 4
-
 
 #: The strip's smallest cost is searched over the whole-pixel disparities 0 .. this.
 MAX_DISPARITY = 127
@@ -188,6 +188,23 @@ def band_cue_features(
             *(column for w in windows.values() for column in (w[:, 0] - w[:, 1], w[:, 2])),
         ]
     ).astype(np.float32)
+
+
+def strip_textures(
+    left: NDArray[np.uint8], right: NDArray[np.uint8], rows: NDArray[np.integer], cols: NDArray[np.integer]
+) -> NDArray[np.float32]:
+    """The band cue's ``strip_texture`` of pixels ``(rows, cols)`` alone, (N,): without the strip's disparity scan.
+
+    The same kernel as :func:`band_cue_features`, so the values are the same to the bit; for the band prior's
+    texture rule when the cue itself is off.
+    """
+    zero = np.zeros(np.shape(rows), np.float32)
+    grey_left = to_grey(np.asarray(left)).astype(np.float32)
+    grey_right = to_grey(np.asarray(right)).astype(np.float32)
+    costs = kernels.strip_costs(
+        grey_left, grey_right, rows, cols, zero, zero, max_disparity=0, half_height=STRIP_HALF_HEIGHT
+    )
+    return np.ascontiguousarray(costs[:, 3])
 
 
 def edge_distances(

@@ -819,7 +819,7 @@ def window_costs(
     Args:
         left, right: HxW float grey images of the rectified pair.
         rows, cols: (N,) pixels to score.
-        disparities: (N, K) disparities to cost each pixel's window at.
+        disparities: (N, K) disparities to cost each pixel's window at (K >= 1).
         half_height, before, after: the window's reach, pixels (each >= 0).
 
     Returns:
@@ -832,8 +832,8 @@ def window_costs(
     """
     grey_left, grey_right, r, c = _pair_and_pixels("window_costs", left, right, rows, cols)
     d: F32 = np.ascontiguousarray(disparities, dtype=np.float32)
-    if d.ndim != 2 or d.shape[0] != r.size:
-        raise ValueError("window_costs: disparities must be an (N, K) array, a row per pixel")
+    if d.ndim != 2 or d.shape[0] != r.size or d.shape[1] < 1:
+        raise ValueError("window_costs: disparities must be an (N, K) array, K >= 1, a row per pixel")
     if min(half_height, before, after) < 0:
         raise ValueError(f"window_costs: the window's reach must be >= 0, got {half_height}, {before}, {after}")
     if not np.isfinite(d).all():

@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 
 from selfcontra_ros.confidence import constants
 from selfcontra_ros.confidence.band_cue import FEATURES as BAND_CUE_FEATURES
-from selfcontra_ros.confidence.band_cue import band_cue_features, default_band_cue
+from selfcontra_ros.confidence.band_cue import band_cue_features, default_band_cue, strip_textures
 from selfcontra_ros.confidence.features import FeatureContext, compute_features, feature_names
 from selfcontra_ros.confidence.forest import ForestModel, fit_forest
 from selfcontra_ros.confidence.kernels import band_look
@@ -357,7 +357,7 @@ def band_negatives(
     picked = band & (labels == UNKNOWN)
     if share < 1:
         picked &= rng.random(labels.shape) < share
-    strip = math.isfinite(cue) or texture > 0  # both read the band cue's features
+    strip = math.isfinite(cue) or texture > 0  # both read the band cue's strip
     if not (math.isfinite(look) or strip) or not picked.any():
         labels[picked] = NEGATIVE
         return labels
@@ -368,15 +368,19 @@ def band_negatives(
     if np.shape(image)[:2] != labels.shape:
         raise SelfContraError(f"image {np.shape(image)} does not match the disparity map {labels.shape}")
     rows, cols = np.nonzero(picked)
-    scores = band_look_scores(image, disparity, band, rows, cols, jump_px=p.stage2_edge_jump_px)
-    kept = scores >= look  # NaN compares False: drawn
-    if strip:
+    kept = np.zeros(rows.size, dtype=bool)
+    if math.isfinite(look) or math.isfinite(cue):  # the cue reads the look too
+        scores = band_look_scores(image, disparity, band, rows, cols, jump_px=p.stage2_edge_jump_px)
+        kept |= scores >= look  # NaN compares False: drawn
+    if math.isfinite(cue):
         assert right is not None
         features = band_cue_features(image, right, disparity, rows, cols, scores, p)
-        if math.isfinite(cue):
-            model = cue_model if cue_model is not None else default_band_cue()
-            kept |= model.predict(features) >= cue
+        model = cue_model if cue_model is not None else default_band_cue()
+        kept |= model.predict(features) >= cue
         kept |= features[:, _STRIP_TEXTURE] < texture
+    elif texture > 0:  # the strip's texture alone, without the cue's scan and windows
+        assert right is not None
+        kept |= strip_textures(image, right, rows, cols) < texture
     picked[rows[kept], cols[kept]] = False
     labels[picked] = NEGATIVE
     return labels

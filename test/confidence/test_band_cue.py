@@ -14,6 +14,7 @@ from selfcontra_ros.confidence.band_cue import (
     band_cue_features,
     default_band_cue,
     edge_distances,
+    strip_textures,
 )
 from selfcontra_ros.confidence.constants import TRAINING
 from selfcontra_ros.confidence.forest import ForestModel, fit_forest, load_model, save_model
@@ -27,14 +28,7 @@ from selfcontra_ros.stages.voting import band_background
 
 def _strip_reference(left: np.ndarray, right: np.ndarray, r: int, c: int, d: float, half: int) -> float:
     """The zero-mean mean absolute difference of the 1 x (2 half + 1) strips, written out."""
-    height, width = left.shape
-    ys = np.clip(np.arange(r - half, r + half + 1), 0, height - 1)
-    a = left[ys, c].astype(np.float64)
-    x = min(max(c - d, 0.0), width - 1.0)
-    x0 = min(int(np.floor(x)), width - 2)
-    t = x - x0
-    b = (1 - t) * right[ys, x0].astype(np.float64) + t * right[ys, x0 + 1]
-    return float(np.mean(np.abs((a - a.mean()) - (b - b.mean()))))
+    return _window_reference(left, right, r, c, d, half, 0, 0)[0]
 
 
 def test_strip_costs_match_the_written_out_strips() -> None:
@@ -105,6 +99,8 @@ def test_window_costs_match_the_written_out_windows_and_the_strip() -> None:
         window_costs(left, right, rows[:1], cols[:1], np.array([[np.nan, 1.0]]), half_height=1, before=0, after=0)
     with pytest.raises(ValueError, match=">= 0"):
         window_costs(left, right, rows, cols, pairs, half_height=1, before=-1, after=0)
+    with pytest.raises(ValueError, match="K >= 1"):
+        window_costs(left, right, rows, cols, pairs[:, :0], half_height=1, before=0, after=0)
 
 
 def test_band_background_is_the_smallest_disparity_of_the_band_window() -> None:
@@ -270,6 +266,7 @@ def test_band_negatives_leave_out_band_pixels_whose_strip_has_no_texture(stereo_
         :, FEATURES.index("strip_texture")
     ]
     assert np.array_equal(drawn[rows, cols], texture >= 2.0)
+    np.testing.assert_array_equal(strip_textures(left, right, rows, cols), texture)  # the cue-less path's values
     assert not drawn[24:37].any()  # every strip inside the stripe is flat
     assert np.array_equal(drawn[:12], everything[:12]) and np.array_equal(drawn[49:], everything[49:])
     # With the cue as well, a pixel leaves the draw if either rule says so.
