@@ -21,7 +21,10 @@ Renders ``--scenes`` x ``--seeds`` sequences (``--frames`` frames at
   ground truth (:data:`ORACLES`: the labelled pixels' true labels; only the
   positives mended; only the negatives; the wrong positives or all wrong
   labels left out), which tell whether the choice of pixels or the wrong
-  positives or negatives cost the forest;
+  positives or negatives cost the forest; and the ground truth of the labelled
+  frames alone (``gt_labelled_frames``: the labeller leaves the last
+  ``label_delay`` frames of a sequence unlabelled, a third of 30 frames, so
+  the ``gt`` forest learns from half as many images again);
 * a PNG (``--plot``) of positive precision and accuracy against the query
   bad rate, one point per sequence;
 * last, one JSON line with all of it.
@@ -163,7 +166,16 @@ ORACLES: dict[str, Callable[[NDArray[np.uint8], NDArray[np.uint8], NDArray[np.bo
     # Every unlabelled pixel with its true label, the labelled ones as they are: what any labelling signal on the
     # pixels the consistency test leaves unknown could reach, its own errors kept.
     "gt_at_unknown": lambda own, gt, band: np.where(own == UNKNOWN, gt, own),
+    # Every pixel with its true label, on the frames the labeler labelled only: the ground-truth forest of the
+    # self forest's own images. The ground-truth forest ("gt") learns from every frame of a sequence, the
+    # labels miss its last ``label_delay`` frames (a third of a 30-frame sequence, a few frames of a user's
+    # bag): the ratio to this one is the labels' quality alone, without the images they lack.
+    "gt_labelled_frames": lambda own, gt, band: gt,
 }
+
+#: :data:`ORACLES` that label every pixel with ground truth are trained as the ground-truth forest is, without
+#: the self forest's band prior (which would draw the pixels without ground truth in the band as negatives).
+WHOLE_TRUTH = frozenset({"gt_labelled_frames"})
 
 
 def _oracle_folders(row: dict[str, Any], work: Path, names: list[str]) -> dict[str, Path]:
@@ -276,7 +288,7 @@ def _confidence(
                 "ensemble",
                 model,
                 forest={"random_state": first_forest_seed},
-                band=band,
+                band=BandPrior(share=0.0) if name in WHOLE_TRUTH else band,
             )
             models.append(model)
     # Results are keyed by the model files' stems: "self", "gt" (and "self_f1", "gt_f1", ...), "lrd" and the
@@ -433,7 +445,9 @@ def main(argv: list[str] | None = None) -> int:
                             f"(min {min(spread):.3f}, max {max(spread):.3f})"
                         )
                     for name in oracles or ():
-                        print(f"{scene}:   trained on {name}: {result[f'ausc_ratio_{name}']:.3f}")
+                        value = result[f"ausc_ratio_{name}"]
+                        versus = f" (self / it {result['ausc_ratio_self'] / value:.3f})" if name in WHOLE_TRUTH else ""
+                        print(f"{scene}:   trained on {name}: {value:.3f}{versus}")
         if args.plot:
             _plot(rows, Path(args.plot))
             print(f"plot: {args.plot}")

@@ -125,7 +125,14 @@ def test_a_small_run_labels_trains_every_forest_and_mends_the_oracles_labels(ben
         assert band.any() and np.array_equal(in_band[band], gt[band]), name
         assert np.array_equal(in_band[~band], own[~band]), name
         assert np.array_equal(unknown[labelled], own[labelled]) and np.array_equal(unknown[~labelled], gt[~labelled])
+        whole = cv2.imread(str(out / "oracles" / "gt_labelled_frames" / "orbit_s1" / "labels" / name), -1)
+        assert np.array_equal(whole, gt), name
         checked += 1
     assert checked == rows[0]["frames"]
+    # ... and only on the labelled frames: the last label_delay frames have no label, so none of their truth.
+    labelled_frames = sorted(p.name for p in (own_root / "labels").glob("*.png"))
+    whole_root = out / "oracles" / "gt_labelled_frames" / "orbit_s1" / "labels"
+    whole_frames = sorted(p.name for p in whole_root.glob("*.png"))
+    assert whole_frames == labelled_frames and 0 < len(labelled_frames) < 14
     image = cv2.imread(str(plot))
     assert image is not None and image.shape[0] > 100 and image.shape[1] > 100
