@@ -445,8 +445,10 @@ def main(argv: list[str] | None = None) -> int:
                             f"(min {min(spread):.3f}, max {max(spread):.3f})"
                         )
                     for name in oracles or ():
-                        value = result[f"ausc_ratio_{name}"]
-                        versus = f" (self / it {result['ausc_ratio_self'] / value:.3f})" if name in WHOLE_TRUTH else ""
+                        value, versus = result[f"ausc_ratio_{name}"], ""
+                        if name in WHOLE_TRUTH:  # trained with the first forest seed only; self is the seeds' mean
+                            mean = ", self the forest seeds' mean" if args.forest_seeds > 1 else ""
+                            versus = f" (self / it {result['ausc_ratio_self'] / value:.3f}{mean})"
                         print(f"{scene}:   trained on {name}: {value:.3f}{versus}")
         if args.plot:
             _plot(rows, Path(args.plot))
