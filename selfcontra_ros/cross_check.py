@@ -137,7 +137,9 @@ class CrossCheck:
         """Match the pair with the second matcher and add the view to the second labeler."""
         skipped = self._labeler.skipped_views
         other = self._matcher.compute(left, right, with_right=False).left
-        results = self._labeler.add_view(other, pose, stamp=stamp, key=key, image=left)
+        results = self._labeler.add_view(
+            other, pose, stamp=stamp, key=key, image=left, max_disparity=self._matcher.params.max_disparity
+        )
         if self._labeler.skipped_views == skipped:
             self._views[(key, stamp)] = (np.asarray(disparity, dtype=np.float32), other)
         self._keep(results)

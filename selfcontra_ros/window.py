@@ -10,6 +10,7 @@ it (``F' = R F R^T``, :func:`selfcontra_ros.uncertainty.rotate_sym`).
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from collections.abc import Hashable, Iterator
 from dataclasses import dataclass, field
@@ -47,6 +48,9 @@ class View:
         clipped: pixels whose left-image grey value is saturated (see :func:`saturated_pixels`): never
             labelled positive whatever the votes; None when the cue is off or the view came without image.
         labelled: whether labels for this view have been produced.
+        max_disparity: the largest disparity the view's matcher searched, pixels (inf: unknown). A point
+            whose disparity in this view would exceed it could not have been measured here: a surface that
+            near comes out at some farther disparity, or not at all (``LabelerParams.range_abstain``).
         bands: the view's fattening bands (flat bool) by ``(jump_px, occluded_side_px, other_px)``, computed
             once by Stage 2 (:func:`selfcontra_ros.stages.voting.view_band`) for the view as query and as
             reference.
@@ -66,6 +70,7 @@ class View:
     reliable: NDArray[np.bool_]
     labelled: bool = field(default=False)
     clipped: NDArray[np.bool_] | None = field(default=None, repr=False)
+    max_disparity: float = math.inf
     bands: dict[tuple[float, int, int], NDArray[np.bool_]] = field(default_factory=dict, repr=False)
 
     def from_view(self, other: View) -> NDArray[np.float64]:
@@ -84,11 +89,13 @@ def make_view(
     sigma_px: float,
     reliable: NDArray[np.bool_] | None = None,
     clipped: NDArray[np.bool_] | None = None,
+    max_disparity: float = math.inf,
 ) -> View:
     """Build a :class:`View` from a disparity map (HxW, pixels) and its pose (4x4 ``T_world_left``).
 
     ``reliable`` (HxW) marks the pixels whose match is trusted; None trusts every valid pixel.
     ``clipped`` (HxW) marks the pixels that may never be labelled positive (saturated ones); None: none.
+    ``max_disparity``: the largest disparity the matcher searched (pixels; inf: unknown).
     """
     disp = np.asarray(disparity, dtype=np.float32)
     valid = (np.isfinite(disp) & (disp > 0)).ravel()
@@ -109,6 +116,7 @@ def make_view(
         support_bits=np.zeros(valid.size, dtype=np.uint64),
         reliable=valid.copy() if reliable is None else (np.asarray(reliable, dtype=bool).ravel() & valid),
         clipped=None if clipped is None else np.asarray(clipped, dtype=bool).ravel().copy(),
+        max_disparity=float(max_disparity),
     )
 
 

@@ -215,6 +215,8 @@ def test_views_closer_than_alpha_min_give_no_support() -> None:
         ("contradicted_share", 1.5),
         ("contradicted_radius_deg", 0.0),
         ("contradicted_radius_deg", "2"),
+        ("range_abstain", 1),
+        ("range_margin_px", -1.0),
     ],
 )
 def test_invalid_stage2_options_are_rejected_by_name(field: str, value: object) -> None:
@@ -310,3 +312,60 @@ def test_ambiguous_references_cast_no_vote(arc: tuple[list[np.ndarray], list[np.
     plain = _run_with_images(bad, poses, images, PAPER)
     assert np.mean(plain.stage2_labels[plain.vote_sum > 0] == POSITIVE) > 0.99
     assert np.mean(plain.vote_sum != 0) > 0.3
+
+
+def _render_with_patch(pose: np.ndarray, z: float, half: float) -> tuple[np.ndarray, np.ndarray]:
+    """Depth of the wall alone and whether a square patch (plane ``Z = z``, ``half`` metres about TARGET) is hit."""
+    u, v = np.meshgrid(np.arange(CAMERA.width, dtype=float), np.arange(CAMERA.height, dtype=float))
+    rays = np.stack([(u - CAMERA.cx) / CAMERA.fx, (v - CAMERA.cy) / CAMERA.fy, np.ones_like(u)], axis=-1)
+    directions = rays @ pose[:3, :3].T
+    t = (z - pose[2, 3]) / directions[..., 2]
+    x, y = pose[0, 3] + t * directions[..., 0], pose[1, 3] + t * directions[..., 1]
+    hit = (t > 0) & (np.abs(x - TARGET[0]) < half) & (np.abs(y - TARGET[1]) < half)
+    return render_depth(pose, PLANES[:1]), hit
+
+
+def _run_with_range(
+    disparities: list[np.ndarray], poses: list[np.ndarray], params: LabelerParams, max_disparity: float | None
+) -> LabelResult:
+    labeler = Labeler(CAMERA, params)
+    results: list[LabelResult] = []
+    for i, (disp, pose) in enumerate(zip(disparities, poses, strict=True)):
+        results += labeler.add_view(disp, pose, stamp=100.0 + i, key=i, max_disparity=max_disparity)
+    results += labeler.flush()
+    return {r.key: r for r in results}[MIDDLE]
+
+
+def test_references_abstain_on_points_beyond_their_disparity_range() -> None:
+    # The middle view stands back (10 m from the target) and measures a patch 4 m in front of the wall at
+    # 16.7 px; the other views (8 m) would see it at 22.7-25.2 px but report the wall behind it, as a matcher
+    # does whose search range ends short of the patch. They agree on the wall, so the paper calls the
+    # middle view's patch negative; whether it is depends on whether they could have measured the patch.
+    z_patch, half = 6.0, 0.6
+    patch_plane = ((np.array([0.0, 0.0, 1.0]), z_patch),)
+    poses = [orbit_pose(a, radius=10.0 if i == MIDDLE else 8.0) for i, a in enumerate(ANGLES)]
+    disparities = []
+    for i, pose in enumerate(poses):
+        wall, hit = _render_with_patch(pose, z_patch, half)
+        patch_disparity = CAMERA.depth_to_disparity(render_depth(pose, patch_plane))
+        if i == MIDDLE:
+            disparities.append(np.where(hit, patch_disparity, CAMERA.depth_to_disparity(wall)))
+            np.testing.assert_allclose(patch_disparity[hit], CAMERA.fx * CAMERA.baseline / z_patch, rtol=1e-9)
+            patch = hit
+        else:
+            disparities.append(CAMERA.depth_to_disparity(wall))
+            if hit.any():  # inside a range of 30 px, beyond one of 22 px
+                assert patch_disparity[hit].min() > 22.0 and patch_disparity[hit].max() < 26.0
+    on = dataclasses.replace(PARAMS, range_abstain=True, range_margin_px=2.0)
+    paper = _run_with_range(disparities, poses, dataclasses.replace(PARAMS, range_abstain=False), 22.0)
+    assert np.mean(paper.labels[patch] == NEGATIVE) > 0.95
+    # A range of 22 px less the 2 px margin: the references could not have seen the patch and abstain on it.
+    short = _run_with_range(disparities, poses, on, 22.0)
+    assert not np.any(short.labels[patch] == NEGATIVE)
+    assert not np.any(short.labels[patch] == POSITIVE)  # nobody confirms it either
+    assert not np.any(short.stage2_labels[patch] != UNKNOWN)
+    # A range of 30 px: they could have, so the patch is a phantom they contradict, exactly as in the paper.
+    wide = _run_with_range(disparities, poses, on, 30.0)
+    np.testing.assert_array_equal(wide.labels, paper.labels)
+    # An unknown range (no max_disparity) is the paper too.
+    np.testing.assert_array_equal(_run_with_range(disparities, poses, on, None).labels, paper.labels)

@@ -16,10 +16,11 @@ from selfcontra_ros.datasets.kitti import open_sequence
 from selfcontra_ros.datasets.synthetic import write_sequence
 from selfcontra_ros.errors import SelfContraError
 from selfcontra_ros.evaluation.metrics import label_metrics, mean_metrics
-from selfcontra_ros.labeler import Labeler
+from selfcontra_ros.labeler import Labeler, LabelerParams
 from selfcontra_ros.labels import colorize_labels
-from selfcontra_ros.matching.base import make_matcher
+from selfcontra_ros.matching.base import MatcherParams, make_matcher
 from selfcontra_ros.pipeline import label_sequence
+from selfcontra_ros.session import LabelingSession
 
 FRAMES = 8
 WIDTH, HEIGHT = 320, 96
@@ -92,7 +93,14 @@ def test_labels_equal_a_direct_labeler_run(street: Path, small_window: Path, lab
     for frame in sequence:
         assert frame.pose is not None
         disparity = matcher.compute(frame.left, frame.right, with_right=False).left
-        results += labeler.add_view(disparity, frame.pose, stamp=frame.stamp, key=frame.index, image=frame.left)
+        results += labeler.add_view(
+            disparity,
+            frame.pose,
+            stamp=frame.stamp,
+            key=frame.index,
+            image=frame.left,
+            max_disparity=matcher_params.max_disparity,
+        )
     results += labeler.flush()
     assert results
     for result in results:
@@ -141,3 +149,18 @@ def test_without_ground_truth_reports_label_shares(street: Path, small_window: P
     for entry in report["frames"]:
         total = entry["label_positive_share"] + entry["label_negative_share"] + entry["label_unknown_share"]
         assert total == pytest.approx(1.0)
+
+
+def test_the_session_tells_the_labeler_its_matchers_disparity_range(street: Path) -> None:
+    sequence = open_sequence(street)
+    frames = list(sequence)[:2]
+    session = LabelingSession(sequence.camera, MatcherParams(num_disparities=32, min_disparity=4), LabelerParams())
+    for frame in frames:
+        assert frame.pose is not None
+        session.process(frame.left, frame.right, frame.pose, stamp=frame.stamp, key=frame.index)
+    assert [view.max_disparity for view in session.labeler.window] == [35.0, 35.0]
+    external = LabelingSession(sequence.camera, MatcherParams(algorithm="external"), LabelerParams())
+    disparity = make_matcher(MatcherParams()).compute(frames[0].left, frames[0].right, with_right=False).left
+    assert frames[0].pose is not None
+    external.process(frames[0].left, frames[0].right, frames[0].pose, stamp=0.0, key=0, external_disparity=disparity)
+    assert [view.max_disparity for view in external.labeler.window] == [float("inf")]  # unknown: no limit

@@ -119,6 +119,17 @@ def test_bad_inputs_are_named() -> None:
     skewed[0, 1] = 0.5
     with pytest.raises(SelfContraError, match="rotation"):
         labeler.add_view(_wall_disparity(), skewed, stamp=0.0)
+    for bad in (0.0, -16.0, float("nan"), float("inf")):
+        with pytest.raises(SelfContraError, match="max_disparity"):
+            labeler.add_view(_wall_disparity(), _pose(0.0), stamp=0.0, max_disparity=bad)
+    assert labeler.skipped_views == 0 and len(labeler.window) == 0  # nothing half-added
+
+
+def test_views_keep_their_matchers_disparity_range() -> None:
+    labeler = Labeler(CAMERA, LabelerParams(window_size=3, label_delay=2))
+    labeler.add_view(_wall_disparity(), _pose(0.0), stamp=0.0, max_disparity=63.0)
+    labeler.add_view(_wall_disparity(), _pose(0.5), stamp=1.0)
+    assert [view.max_disparity for view in labeler.window] == [63.0, float("inf")]
 
 
 def test_params_validation_and_from_dict() -> None:

@@ -1,14 +1,21 @@
-"""Tests shared by the stages: is a reference measurement within ``sigma_max`` of a query measurement?"""
+"""Tests shared by the stages.
+
+Is a reference measurement within ``sigma_max`` of a query measurement, and may the reference speak about the
+query point at all (:func:`range_limit`)?
+"""
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 from numpy.typing import NDArray
 
 from selfcontra_ros.geometry import StereoCamera
 from selfcontra_ros.stages import kernels
+from selfcontra_ros.window import View
 
-__all__ = ["TOLERANCES", "tolerance_code", "tolerance_sq", "within_tolerance"]
+__all__ = ["TOLERANCES", "range_limit", "tolerance_code", "tolerance_sq", "within_tolerance"]
 
 #: Readings of "within sigma_max" (DESIGN section 3):
 #: ``query``   - Mahalanobis distance under the query point's covariance (paper, Stage 2);
@@ -92,3 +99,14 @@ def tolerance_code(mode: str) -> int:
 
 def _rows3(points: NDArray[np.floating]) -> NDArray[np.float64]:
     return np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+
+
+def range_limit(view: View, margin_px: float | None) -> float:
+    """The largest disparity (pixels) at which ``view`` may speak about a point: its range less the margin.
+
+    inf where ``margin_px`` is ``None`` (the paper: every view speaks about every point) or the view's range
+    is unknown.
+    """
+    if margin_px is None:
+        return math.inf
+    return view.max_disparity - float(margin_px)

@@ -880,17 +880,21 @@ def reference_ranges_scalar(
     cy: float,
     width: int,
     height: int,
+    focal_baseline: float,
+    limit: float,
 ) -> tuple[int, float, float]:
     """Stage 3's lookup of a query-frame point in reference ``k`` (``ref_points[k]``, ``ref_valid[k]``).
 
     Returns ``(j, range_point, range_measured)``: the reference pixel the
     point projects to, the point's distance from the reference's left camera
     and that of the reference's measurement at ``j`` (metres); ``j = -1``
-    (ranges NaN) outside the image or without a valid measurement there.
+    (ranges NaN) outside the image, without a valid measurement there, or where
+    the point's disparity in the reference (``focal_baseline / depth``) exceeds
+    ``limit`` pixels: a point the reference's matcher could not have measured.
     """
     rx, ry, rz = transform_scalar(ref_from_query, x, y, z)
     j = project_scalar(rx, ry, rz, fx, fy, cx, cy, width, height)
-    if j < 0 or not ref_valid[k, j]:
+    if j < 0 or not ref_valid[k, j] or focal_baseline > limit * rz:
         return -1, np.nan, np.nan
     px, py, pz = np.float64(ref_points[k, j, 0]), np.float64(ref_points[k, j, 1]), np.float64(ref_points[k, j, 2])
     return j, math.sqrt(rx * rx + ry * ry + rz * rz), math.sqrt(px * px + py * py + pz * pz)
@@ -915,14 +919,16 @@ def candidate_is_valid(
     sigma_max: float,
     reading: int,
     min_positive_votes: int,
+    ref_limit: np.ndarray,
 ) -> bool:
     """Stage 3's relaxed vote on one candidate: query pixel ``p``'s ray at depth ``d`` (metres).
 
     Each reference ``k`` (``ref_from_query[k]`` moves query points into it)
     votes by lookup: +1 within :func:`candidate_tolerance_scalar` of its
     measurement along its ray (distance from its left camera), -1 if in front
-    by more (the candidate would block its line of sight), nothing if behind
-    or without a valid measurement there. Valid: at least
+    by more (the candidate would block its line of sight), nothing if behind,
+    without a valid measurement there, or where the candidate's disparity in it
+    exceeds ``ref_limit[k]`` pixels (inf: no limit). Valid: at least
     ``min_positive_votes`` +1 votes and a positive sum.
     """
     # The pixel's ray: the same expressions as projection.pixel_rays.
@@ -930,12 +936,27 @@ def candidate_is_valid(
     y = d * ((np.float64(p // width) - cy) / fy)
     z = d * 1.0
     u_c = -1.0  # computed at the first vote that needs it
+    focal_baseline = fx * baseline
     plus = 0
     total = 0
     n_refs = ref_points.shape[0]
     for k in range(n_refs):
         j, range_c, range_r = reference_ranges_scalar(
-            ref_from_query[k], x, y, z, ref_points, ref_valid, k, fx, fy, cx, cy, width, height
+            ref_from_query[k],
+            x,
+            y,
+            z,
+            ref_points,
+            ref_valid,
+            k,
+            fx,
+            fy,
+            cx,
+            cy,
+            width,
+            height,
+            focal_baseline,
+            ref_limit[k],
         )
         if j >= 0:
             if u_c < 0:
@@ -973,6 +994,7 @@ def vote_nearest(
     sigma_max: float,
     reading: int,
     min_positive_votes: int,
+    ref_limit: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Stage 3, first round: the relaxed vote on each pixel's nearest candidate ``best`` (inf where none).
 
@@ -1004,6 +1026,7 @@ def vote_nearest(
             sigma_max,
             reading,
             min_positive_votes,
+            ref_limit,
         ):
             z_aug[p] = d
         else:
@@ -1032,6 +1055,7 @@ def vote_farther(
     sigma_max: float,
     reading: int,
     min_positive_votes: int,
+    ref_limit: np.ndarray,
 ) -> None:
     """Stage 3, later rounds, in place: per pixel, the nearest valid candidate of ``depth`` farther than ``best``.
 
@@ -1061,6 +1085,7 @@ def vote_farther(
                 sigma_max,
                 reading,
                 min_positive_votes,
+                ref_limit,
             ):
                 z_aug[p] = d
                 break
@@ -1135,6 +1160,8 @@ def free_space_witnesses_kernel(
     height: int,
     sigma_max: float,
     reading: int,
+    focal_baseline: float,
+    limit: float,
 ) -> None:
     """Stage 3, in place: add 1 to ``count[i]`` where one reference sees through query pixel ``pixels[i]``'s point.
 
@@ -1144,13 +1171,14 @@ def free_space_witnesses_kernel(
     view looked through the place where the query puts a surface. One
     reference per call, as a stack of one (``ref_points[None]``, a view: no
     copy of the window), looked up by :func:`reference_ranges_scalar` as the
-    candidates' votes are.
+    candidates' votes are; a reference in which ``X_q``'s disparity
+    (``focal_baseline / depth``) exceeds ``limit`` pixels is no witness.
     """
     for i in prange(pixels.shape[0]):
         p = pixels[i]
         x, y, z = np.float64(query_points[p, 0]), np.float64(query_points[p, 1]), np.float64(query_points[p, 2])
         j, range_q, range_r = reference_ranges_scalar(
-            ref_from_query, x, y, z, ref_points, ref_valid, 0, fx, fy, cx, cy, width, height
+            ref_from_query, x, y, z, ref_points, ref_valid, 0, fx, fy, cx, cy, width, height, focal_baseline, limit
         )
         if j >= 0 and range_r - range_q > candidate_tolerance_scalar(
             np.float64(query_u[p]), np.float64(ref_u[0, j]), sigma_max, reading
@@ -1264,6 +1292,7 @@ def lookup_votes_kernel(
     occlusion_votes: np.ndarray,
     fallback_views: np.ndarray,
     fallback_accuracy_ratio: float,
+    limit: float,
 ) -> None:
     """Stage 2, lookup: add one reference view's positive or occlusion vote to each valid query pixel, in place.
 
@@ -1291,9 +1320,13 @@ def lookup_votes_kernel(
     ``vote_sum[i] += vote`` and ``voted[i] |= vote != 0``: called once per
     reference in window order, the sums are those of adding whole vote arrays
     reference by reference. Each pixel writes only its own entries.
+
+    Where ``X_q``'s disparity in the reference (``fx * baseline / depth``) exceeds ``limit`` pixels (inf: no
+    limit), the reference could not have measured ``X_q``: it casts no vote there and decides it (no splat vote).
     """
     n = q_valid.shape[0]
     cap = max(positive_sq, negative_sq)  # beyond both limits the exact distance changes nothing
+    focal_baseline = fx * baseline
     for i in prange(n):
         if not q_valid[i]:
             continue
@@ -1303,6 +1336,9 @@ def lookup_votes_kernel(
         decided = False
         x, y, z = transform_scalar(ref_from_query, xq, yq, zq)
         j = project_scalar(x, y, z, fx, fy, cx, cy, width, height)
+        if j >= 0 and focal_baseline > limit * z:
+            j = -1  # beyond the reference's disparity range: it abstains on X_q
+            decided = True
         if j >= 0 and r_valid[j] and r_bits[j] != np.uint64(0):
             u_r = np.float64(r_u[j])
             may_negative = u_r < u_q or negatives_from_any[i]

@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 
 from selfcontra_ros.geometry import StereoCamera
 from selfcontra_ros.stages import kernels
+from selfcontra_ros.stages._common import range_limit
 from selfcontra_ros.window import View
 
 __all__ = [
@@ -130,6 +131,7 @@ def augmented_depth(
     sigma_px: float,
     reading: str,
     min_positive_votes: int,
+    range_margin_px: float | None = None,
 ) -> NDArray[np.float64]:
     """Augmented depth (metres, flat ``(H*W,)``, NaN where no valid candidate) for the ``pending`` query pixels.
 
@@ -139,7 +141,9 @@ def augmented_depth(
     (:func:`~selfcontra_ros.stages.kernels.candidate_is_valid`) wins, and
     farther candidates of that pixel are never voted on. The nearest
     candidate is voted on first for all pixels; only pixels where it fails
-    sort their other candidates.
+    sort their other candidates. With ``range_margin_px`` (see
+    :func:`~selfcontra_ros.stages._common.range_limit`) a reference casts no vote on a candidate beyond its
+    disparity range.
     """
     pending = np.ascontiguousarray(pending, dtype=np.bool_).reshape(-1)
     if not refs or not pending.any():
@@ -162,7 +166,8 @@ def augmented_depth(
     kernels.splat_into_pending(pixel, depth, pending, ref_points, ref_valid, query_from_ref, *geometry)
     best = kernels.nearest_candidate(pixel, depth, pending.size)
     vote = (ref_points, ref_valid, ref_u, ref_from_query, *geometry, camera.baseline)
-    rest = (float(sigma_px), float(sigma_max), code, int(min_positive_votes))
+    limits = np.array([range_limit(ref, range_margin_px) for ref in refs])
+    rest = (float(sigma_px), float(sigma_max), code, int(min_positive_votes), limits)
     # Round 1: each pixel's nearest candidate (on the synthetic street it is the validated one for 97 % of pixels).
     z_aug, retry = kernels.vote_nearest(best, *vote, *rest)
     if retry.any():
@@ -184,6 +189,8 @@ def outlier_negatives(
     refs: list[View] | None = None,
     min_free_space_views: int = 0,
     min_depth_ratio: float = 1.0,
+    range_margin_px: float | None = None,
+    reliable_witnesses: bool = False,
 ) -> NDArray[np.bool_]:
     """Pending query pixels (flat) whose depth lies in front of the augmented depth by more than the margin.
 
@@ -218,7 +225,16 @@ def outlier_negatives(
         if refs is None:
             raise ValueError("outlier_negatives: min_free_space_views > 0 needs the references (refs)")
         pixels = np.flatnonzero(negative)
-        witnesses = free_space_witnesses(query, refs, pixels, camera, sigma_max=sigma_max, reading=reading)
+        witnesses = free_space_witnesses(
+            query,
+            refs,
+            pixels,
+            camera,
+            sigma_max=sigma_max,
+            reading=reading,
+            range_margin_px=range_margin_px,
+            reliable_only=reliable_witnesses,
+        )
         negative[pixels[witnesses < min_free_space_views]] = False
     return negative
 
@@ -231,6 +247,8 @@ def free_space_witnesses(
     *,
     sigma_max: float,
     reading: str,
+    range_margin_px: float | None = None,
+    reliable_only: bool = False,
 ) -> NDArray[np.int32]:
     """How many of ``refs`` see through the query point of each flat pixel index in ``pixels``.
 
@@ -239,7 +257,11 @@ def free_space_witnesses(
     :func:`candidate_tolerance` of the two uncertainties (the free-space
     violation of DESIGN section 3, counted per view). Stage 3 calls ``X_q`` an
     outlier because a surface the views agree on lies behind it; a view that
-    looked through ``X_q``'s place is the evidence that nothing stands there.
+    looked through ``X_q``'s place is the evidence that nothing stands there. With ``range_margin_px``
+    (see :func:`~selfcontra_ros.stages._common.range_limit`) a view in which ``X_q`` lies beyond its
+    disparity range is no witness: its matcher could not have seen ``X_q``, so it measures something
+    farther whether ``X_q`` is there or not. With ``reliable_only`` only the references' reliable
+    measurements (``View.reliable``, as for Stage-2 votes) witness.
     """
     pixels = np.ascontiguousarray(pixels, dtype=np.int64)
     count = np.zeros(pixels.size, dtype=np.int32)
@@ -251,7 +273,7 @@ def free_space_witnesses(
             query.points,
             query.u,
             ref.points[None],
-            ref.valid[None],
+            (ref.reliable if reliable_only else ref.valid)[None],
             ref.u[None],
             ref.from_view(query),
             camera.fx,
@@ -262,5 +284,7 @@ def free_space_witnesses(
             camera.height,
             float(sigma_max),
             code,
+            camera.fx * camera.baseline,
+            range_limit(ref, range_margin_px),
         )
     return count

@@ -53,6 +53,7 @@ has no evidence at all.
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 
@@ -64,7 +65,7 @@ from selfcontra_ros.geometry import StereoCamera
 from selfcontra_ros.labels import NEGATIVE, POSITIVE, UNKNOWN
 from selfcontra_ros.projection import transform
 from selfcontra_ros.stages import kernels
-from selfcontra_ros.stages._common import tolerance_code
+from selfcontra_ros.stages._common import range_limit, tolerance_code
 from selfcontra_ros.window import View, support_count
 
 __all__ = [
@@ -140,6 +141,7 @@ def _reference_votes(
     positive_accuracy_ratio: float = 1.0,
     fallback_views: NDArray[np.int32] | None = None,
     fallback_accuracy_ratio: float = 1.0,
+    disparity_limit: float = math.inf,
 ) -> None:
     """Add the vote (if any) of one reference view to every valid query pixel, in place (flat ``(H*W,)``).
 
@@ -157,6 +159,8 @@ def _reference_votes(
     positive where ``u_r < positive_accuracy_ratio * u_q`` (1: only a more accurate one, the paper).
     ``fallback_views`` (flat int32, or ``None``): one is added where a measurement that may not vote positive,
     but is less accurate by under ``fallback_accuracy_ratio``, agrees; it casts no vote.
+    ``disparity_limit``: where ``X_q``'s disparity in the reference exceeds this (pixels), the reference casts no
+    vote at all (inf: the paper).
     """
     ref_from_query = ref.from_view(query)
     query_from_ref = query.from_view(ref)
@@ -192,6 +196,7 @@ def _reference_votes(
         occlusion_votes,
         _NO_FALLBACK if fallback_views is None else fallback_views,
         0.0 if fallback_views is None else float(fallback_accuracy_ratio),
+        float(disparity_limit),
     )
     if not free_space:
         return
@@ -374,6 +379,7 @@ def consistency_voting(
     band_min_negative_views: int = 1,
     fallback_accuracy_ratio: float = 1.0,
     fallback_min_views: int = 2,
+    range_margin_px: float | None = None,
 ) -> VotingResult:
     """Stage 2 for one query view against the reference views ``refs``.
 
@@ -431,6 +437,9 @@ def consistency_voting(
             The query's own match must be reliable (``View.reliable``) whatever ``abstain_ambiguous``; the
             positive label's other conditions (band, hole margin, support) apply alike.
         fallback_min_views: the agreeing less accurate references a fallback positive needs (>= 1).
+        range_margin_px: not ``None``: a reference casts no vote on a query point whose disparity in it
+            would exceed its ``View.max_disparity`` minus this margin (pixels): its matcher could not have
+            measured that point, so its measurement there says nothing about it. ``None`` = the paper.
     """
     n = query.valid.size
     mode = tolerance_code(tolerance)
@@ -508,6 +517,7 @@ def consistency_voting(
             positive_accuracy_ratio=positive_accuracy_ratio,
             fallback_views=fallback,
             fallback_accuracy_ratio=fallback_accuracy_ratio,
+            disparity_limit=range_limit(ref, range_margin_px),
         )
         if negative_views is not None:
             negative_views += ref_sum < 0

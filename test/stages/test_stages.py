@@ -400,12 +400,14 @@ def _query_points_in(ref: View, query: View, pixels: np.ndarray) -> tuple[np.nda
     return moved, inside, np.where(inside, row * CAMERA.width + col, 0).astype(int)
 
 
-def _witnesses_by_numpy(query: View, refs: list[View], pixels: np.ndarray) -> np.ndarray:
-    """free_space_witnesses written out per reference with numpy (same projection, same tolerance)."""
+def _witnesses_by_numpy(query: View, refs: list[View], pixels: np.ndarray, margin: float | None = None) -> np.ndarray:
+    """free_space_witnesses written out per reference with numpy (same projection, same tolerance, same range)."""
     count = np.zeros(pixels.size, dtype=int)
     for ref in refs:
         moved, inside, j = _query_points_in(ref, query, pixels)
         seen = inside & ref.valid[j]
+        if margin is not None:
+            seen &= CAMERA.fx * CAMERA.baseline <= (ref.max_disparity - margin) * moved[:, 2]
         behind = np.linalg.norm(ref.points[j].astype(np.float64), axis=1) - np.linalg.norm(moved, axis=1)
         tolerance = candidate_tolerance(query.u[pixels], ref.u[j], 2.0, "std")
         count += seen & (behind > tolerance)
@@ -421,6 +423,65 @@ def test_free_space_witnesses_count_the_references_seeing_through_the_query_poin
     counts = free_space_witnesses(near, refs, pixels, CAMERA, sigma_max=2.0, reading="std")
     np.testing.assert_array_equal(counts, _witnesses_by_numpy(near, refs, pixels))
     assert np.all(counts.reshape(CAMERA.height, CAMERA.width)[CENTRE] == len(refs))
+
+
+def test_a_reference_is_no_witness_for_a_point_beyond_its_disparity_range() -> None:
+    refs = [view_at(a, index=i) for i, a in enumerate((-24.0, -12.0, 12.0, 24.0))]
+    near = view_at(0.0, scale=1.6)
+    pixels = np.flatnonzero(near.valid)
+    # The near points' disparities in each reference, and a range that cuts through them.
+    in_refs = [CAMERA.fx * CAMERA.baseline / _query_points_in(ref, near, pixels)[0][:, 2] for ref in refs]
+    for ref, disparity in zip(refs, in_refs, strict=True):
+        ref.max_disparity = float(np.median(disparity)) + 2.0
+    counts = free_space_witnesses(near, refs, pixels, CAMERA, sigma_max=2.0, reading="std", range_margin_px=2.0)
+    np.testing.assert_array_equal(counts, _witnesses_by_numpy(near, refs, pixels, margin=2.0))
+    full = free_space_witnesses(near, refs, pixels, CAMERA, sigma_max=2.0, reading="std")
+    assert np.all(counts <= full) and counts.sum() < 0.8 * full.sum() and counts.sum() > 0.2 * full.sum()
+    # The range known but wide: every witness counts again.
+    for ref in refs:
+        ref.max_disparity = 1000.0
+    wide = free_space_witnesses(near, refs, pixels, CAMERA, sigma_max=2.0, reading="std", range_margin_px=2.0)
+    np.testing.assert_array_equal(wide, full)
+
+
+def test_only_reliable_reference_measurements_witness_when_asked() -> None:
+    refs = [view_at(a, index=i) for i, a in enumerate((-24.0, -12.0, 12.0, 24.0))]
+    near = view_at(0.0, scale=1.6)
+    pixels = np.flatnonzero(near.valid)
+    full = free_space_witnesses(near, refs, pixels, CAMERA, sigma_max=2.0, reading="std")
+    # The left half of every reference's image ambiguous (View.reliable false): those measurements witness no more.
+    for ref in refs:
+        ref.reliable.reshape(CAMERA.height, CAMERA.width)[:, : CAMERA.width // 2] = False
+    same = free_space_witnesses(near, refs, pixels, CAMERA, sigma_max=2.0, reading="std")
+    np.testing.assert_array_equal(same, full)  # the paper: any valid measurement witnesses
+    reliable = free_space_witnesses(near, refs, pixels, CAMERA, sigma_max=2.0, reading="std", reliable_only=True)
+    expected = np.zeros_like(full)
+    for ref in refs:
+        kept = dataclasses.replace(ref, valid=ref.reliable)
+        expected += free_space_witnesses(near, [kept], pixels, CAMERA, sigma_max=2.0, reading="std")
+    np.testing.assert_array_equal(reliable, expected)
+    assert 0.2 * full.sum() < reliable.sum() < 0.8 * full.sum()
+
+
+def test_references_cast_no_stage2_vote_beyond_their_disparity_range() -> None:
+    refs = [_supported(view_at(25.0, radius=5.0))]
+    in_front = view_at(0.0, radius=9.0, scale=1.25)  # an occlusion for the reference (see the test above)
+    paper = consistency_voting(in_front, refs, CAMERA, tolerance="sum", **KW)
+    assert np.all(paper.labels.reshape(CAMERA.height, CAMERA.width)[CENTRE] == NEGATIVE)
+    pixels = np.flatnonzero(in_front.valid)
+    moved, inside, _ = _query_points_in(refs[0], in_front, pixels)
+    disparity = CAMERA.fx * CAMERA.baseline / moved[:, 2]
+    refs[0].max_disparity = float(np.median(disparity[inside])) + 1.0
+    cut = consistency_voting(in_front, refs, CAMERA, tolerance="sum", range_margin_px=1.0, **KW)
+    beyond = np.zeros(in_front.valid.size, dtype=bool)
+    beyond[pixels] = inside & (CAMERA.fx * CAMERA.baseline > (refs[0].max_disparity - 1.0) * moved[:, 2])
+    assert 0.2 < beyond[pixels][inside].mean() < 0.8
+    assert paper.voted[beyond].mean() > 0.9
+    assert not cut.voted[beyond].any()  # no vote at all there, neither the lookup's nor the splat's
+    np.testing.assert_array_equal(cut.vote_sum[~beyond], paper.vote_sum[~beyond])
+    # Without a margin (None, the paper) the range is not looked at.
+    same = consistency_voting(in_front, refs, CAMERA, tolerance="sum", **KW)
+    np.testing.assert_array_equal(same.vote_sum, paper.vote_sum)
 
 
 def test_stage3_negative_needs_a_view_that_sees_through_the_query_point() -> None:
