@@ -206,7 +206,6 @@ class LabelingSession:
         frame: ConfidenceFrame | None = None,
         image: NDArray[np.uint8] | None = None,
         right: NDArray[np.uint8] | None = None,
-        max_disparity: float | None = None,
     ) -> tuple[list[LabelResult], bool]:
         """Add one view to the labeler; returns ``(ready label results, skipped)``.
 
@@ -216,9 +215,9 @@ class LabelingSession:
         waits here until the view is labelled, then frame and labels go to
         :meth:`OnlineConfidence.add_labelled`. With a cross check
         (``labeler_params.cross_check_matcher``) the stereo pair comes from
-        ``frame`` or from ``image`` and ``right``. ``max_disparity``: the largest disparity the view's
-        matcher searched (pixels), for ``labeler_params.range_abstain``; None takes the built-in matcher's
-        (unknown in external mode: every view then speaks about every point).
+        ``frame`` or from ``image`` and ``right``. The labeler learns the built-in matcher's disparity range
+        (``labeler_params.range_abstain``); in external mode the range is unknown and every view speaks about
+        every point.
 
         Raises:
             SelfContraError: as :meth:`Labeler.add_view`; with a cross check, when the stereo pair is missing.
@@ -234,9 +233,8 @@ class LabelingSession:
             if image is None or right is None:
                 raise SelfContraError("labeler.cross_check_matcher needs the view's left and right images")
             self.cross_check.add_view(image, right, disparity, pose, stamp=stamp, key=key)
-        if max_disparity is None and self._matcher is not None:
-            max_disparity = self.matcher_params.max_disparity
-        results = self.labeler.add_view(disparity, pose, stamp=stamp, key=key, image=image, max_disparity=max_disparity)
+        searched = None if self._matcher is None else self.matcher_params.max_disparity
+        results = self.labeler.add_view(disparity, pose, stamp=stamp, key=key, image=image, max_disparity=searched)
         if self.cross_check is not None:
             results = [self.cross_check.apply(result) for result in results]
         skipped = self.labeler.skipped_views > skipped_before

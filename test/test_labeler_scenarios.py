@@ -314,17 +314,6 @@ def test_ambiguous_references_cast_no_vote(arc: tuple[list[np.ndarray], list[np.
     assert np.mean(plain.vote_sum != 0) > 0.3
 
 
-def _render_with_patch(pose: np.ndarray, z: float, half: float) -> tuple[np.ndarray, np.ndarray]:
-    """Depth of the wall alone and whether a square patch (plane ``Z = z``, ``half`` metres about TARGET) is hit."""
-    u, v = np.meshgrid(np.arange(CAMERA.width, dtype=float), np.arange(CAMERA.height, dtype=float))
-    rays = np.stack([(u - CAMERA.cx) / CAMERA.fx, (v - CAMERA.cy) / CAMERA.fy, np.ones_like(u)], axis=-1)
-    directions = rays @ pose[:3, :3].T
-    t = (z - pose[2, 3]) / directions[..., 2]
-    x, y = pose[0, 3] + t * directions[..., 0], pose[1, 3] + t * directions[..., 1]
-    hit = (t > 0) & (np.abs(x - TARGET[0]) < half) & (np.abs(y - TARGET[1]) < half)
-    return render_depth(pose, PLANES[:1]), hit
-
-
 def _run_with_range(
     disparities: list[np.ndarray], poses: list[np.ndarray], params: LabelerParams, max_disparity: float | None
 ) -> LabelResult:
@@ -346,14 +335,17 @@ def test_references_abstain_on_points_beyond_their_disparity_range() -> None:
     poses = [orbit_pose(a, radius=10.0 if i == MIDDLE else 8.0) for i, a in enumerate(ANGLES)]
     disparities = []
     for i, pose in enumerate(poses):
-        wall, hit = _render_with_patch(pose, z_patch, half)
+        wall = CAMERA.depth_to_disparity(render_depth(pose, PLANES[:1]))
         patch_disparity = CAMERA.depth_to_disparity(render_depth(pose, patch_plane))
+        on_plane = world_points(pose, patch_disparity)  # NaN where the ray misses the plane
+        hit = np.isfinite(patch_disparity)
+        hit[hit] = (np.abs(on_plane[hit] - TARGET)[:, :2] < half).all(axis=1)  # the square about TARGET
         if i == MIDDLE:
-            disparities.append(np.where(hit, patch_disparity, CAMERA.depth_to_disparity(wall)))
+            disparities.append(np.where(hit, patch_disparity, wall))
             np.testing.assert_allclose(patch_disparity[hit], CAMERA.fx * CAMERA.baseline / z_patch, rtol=1e-9)
             patch = hit
         else:
-            disparities.append(CAMERA.depth_to_disparity(wall))
+            disparities.append(wall)
             if hit.any():  # inside a range of 30 px, beyond one of 22 px
                 assert patch_disparity[hit].min() > 22.0 and patch_disparity[hit].max() < 26.0
     on = dataclasses.replace(PARAMS, range_abstain=True, range_margin_px=2.0)
