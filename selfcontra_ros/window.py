@@ -51,9 +51,9 @@ class View:
         max_disparity: the largest disparity the view's matcher searched, pixels (inf: unknown). A point
             whose disparity in this view would exceed it could not have been measured here: a surface that
             near comes out at some farther disparity, or not at all (``LabelerParams.range_abstain``).
-        bands: the view's fattening bands (flat bool) by ``(jump_px, occluded_side_px, other_px)``, computed
-            once by Stage 2 (:func:`selfcontra_ros.stages.voting.view_band`) for the view as query and as
-            reference.
+        bands: the view's fattening bands (flat bool) by ``(jump_px, occluded_side_px, other_px, below_px)``,
+            computed once by Stage 2 (:func:`selfcontra_ros.stages.voting.view_band`) for the view as query and
+            as reference.
     """
 
     index: int
@@ -71,7 +71,7 @@ class View:
     labelled: bool = field(default=False)
     clipped: NDArray[np.bool_] | None = field(default=None, repr=False)
     max_disparity: float = math.inf
-    bands: dict[tuple[float, int, int], NDArray[np.bool_]] = field(default_factory=dict, repr=False)
+    bands: dict[tuple[float, int, int, int], NDArray[np.bool_]] = field(default_factory=dict, repr=False)
 
     def from_view(self, other: View) -> NDArray[np.float64]:
         """4x4 transform taking points of ``other``'s left frame into this view's left frame."""

@@ -233,14 +233,23 @@ def _reference_votes(
 
 
 def fattening_band(
-    disparity: NDArray[np.floating], *, jump_px: float, occluded_side_px: int, other_px: int
+    disparity: NDArray[np.floating],
+    *,
+    jump_px: float,
+    occluded_side_px: int,
+    other_px: int,
+    below_px: int | None = None,
 ) -> NDArray[np.bool_]:
     """Pixels that may carry foreground fattening: a disparity over ``jump_px`` larger than one close by.
 
     A pixel is in the band when a valid pixel in the window from ``occluded_side_px`` columns to its left to
     ``other_px`` columns to its right, ``other_px`` rows above and below, has a disparity smaller by more than
     ``jump_px``. The window reaches further left because, in a left disparity map, the background left of
-    an object is hidden from the right camera and fattening spreads there furthest.
+    an object is hidden from the right camera and fattening spreads there furthest. With ``below_px`` the
+    window also takes the ``below_px`` rows below the pixel, ``other_px`` columns either side: a single-pass
+    semi-global matcher (OpenCV's ``MODE_SGBM`` and ``MODE_SGBM_3WAY``, the package's default) aggregates
+    costs only along paths that run left to right, right to left or downward, so it carries an object's
+    disparity down onto a weakly textured background below the object's lower edge, and never up.
 
     Args:
         disparity: HxW left disparity, pixels; non-finite or <= 0 is invalid (never in the band, never a
@@ -248,13 +257,16 @@ def fattening_band(
         jump_px: disparity drop, pixels, that makes an edge (the 3 px error rule makes ~3-4 natural).
         occluded_side_px: how far left of a pixel to look for a drop, pixels.
         other_px: how far right, up and down to look, pixels.
+        below_px: how far down to look straight below the pixel (``other_px`` columns either side), pixels;
+            None, or not above ``other_px``: ``other_px``.
 
     Returns:
         HxW bool mask.
     """
     d = np.asarray(disparity, dtype=np.float32)
     valid = np.isfinite(d) & (d > 0)
-    smallest = band_background(d, occluded_side_px=occluded_side_px, other_px=other_px)
+    window = (occluded_side_px, other_px, other_px if below_px is None else below_px)
+    (smallest,) = band_backgrounds(d, [window])
     with np.errstate(invalid="ignore"):
         return valid & (d - smallest > jump_px)
 
@@ -270,22 +282,28 @@ def band_background(disparity: NDArray[np.floating], *, occluded_side_px: int, o
 
 
 def band_backgrounds(
-    disparity: NDArray[np.floating], windows: Iterable[tuple[int, int]]
+    disparity: NDArray[np.floating], windows: Iterable[tuple[int, int] | tuple[int, int, int]]
 ) -> Iterator[NDArray[np.float32]]:
-    """:func:`band_background` for each ``(occluded_side_px, other_px)`` of ``windows``, in order.
+    """:func:`band_background` for each ``(occluded_side_px, other_px[, below_px])`` of ``windows``, in order.
 
-    The invalid pixels are set to inf once for all windows (that copy costs more than a window's minimum).
+    ``below_px`` adds the strip of :func:`fattening_band`'s ``below_px``. The invalid pixels are set to inf
+    once for all windows (that copy costs more than a window's minimum).
     """
     d = np.asarray(disparity, dtype=np.float32)
     filled = np.where(np.isfinite(d) & (d > 0), d, np.float32(np.inf)).astype(np.float32)
-    for occluded_side_px, other_px in windows:
+    for window in windows:
+        occluded_side_px, other_px = window[0], window[1]
         kernel = np.ones((2 * other_px + 1, occluded_side_px + other_px + 1), np.uint8)
         # Erosion is a moving minimum; the anchor puts the pixel ``occluded_side_px`` columns from the window's
         # left.
-        yield np.asarray(
-            cv2.erode(filled, kernel, anchor=(occluded_side_px, other_px), borderType=cv2.BORDER_REPLICATE),
-            dtype=np.float32,
-        )
+        smallest = cv2.erode(filled, kernel, anchor=(occluded_side_px, other_px), borderType=cv2.BORDER_REPLICATE)
+        below_px = window[2] if len(window) > 2 else other_px
+        if below_px > other_px:
+            # The strip below: the pixel's row and the below_px rows under it, other_px columns either side.
+            strip = np.ones((below_px + 1, 2 * other_px + 1), np.uint8)
+            below = cv2.erode(filled, strip, anchor=(other_px, 0), borderType=cv2.BORDER_REPLICATE)
+            smallest = np.minimum(smallest, below)
+        yield np.asarray(smallest, dtype=np.float32)
 
 
 def hole_margin(disparity: NDArray[np.floating], margin_px: float) -> NDArray[np.bool_]:
@@ -336,10 +354,16 @@ def contradicted_positives(labels: NDArray[np.uint8], radius_px: int, share: flo
 
 
 def view_band(
-    view: View, camera: StereoCamera, jump_px: float, occluded_side_px: int, other_px: int
+    view: View,
+    camera: StereoCamera,
+    jump_px: float,
+    occluded_side_px: int,
+    other_px: int,
+    below_px: int | None = None,
 ) -> NDArray[np.bool_]:
     """The :func:`fattening_band` of a view's disparity (flat), computed once per view and size (``View.bands``)."""
-    key = (float(jump_px), int(occluded_side_px), int(other_px))
+    below = int(other_px if below_px is None else below_px)
+    key = (float(jump_px), int(occluded_side_px), int(other_px), below)
     band = view.bands.get(key)
     if band is None:
         band = fattening_band(
@@ -347,6 +371,7 @@ def view_band(
             jump_px=jump_px,
             occluded_side_px=occluded_side_px,
             other_px=other_px,
+            below_px=below,
         ).ravel()
         view.bands[key] = band
     return band
@@ -380,6 +405,7 @@ def consistency_voting(
     fallback_accuracy_ratio: float = 1.0,
     fallback_min_views: int = 2,
     range_margin_px: float | None = None,
+    edge_below_px: int | None = None,
 ) -> VotingResult:
     """Stage 2 for one query view against the reference views ``refs``.
 
@@ -406,6 +432,8 @@ def consistency_voting(
             jump (pixels); 0 = the paper (no band).
         edge_occluded_side_px: the band's reach to the left of a pixel, pixels.
         edge_other_px: the band's reach to the right, up and down, pixels.
+        edge_below_px: the band's reach down for the positive rule alone, pixels (the band's other uses keep
+            ``edge_other_px``); ``None`` = ``edge_other_px``.
         positive_sigma: a reference measurement votes positive only within this many standard deviations
             (the tolerance above); ``None`` = ``sigma_max`` (the paper).
         negative_sigma: a lookup votes for an occlusion only beyond this many standard deviations; ``None`` =
@@ -546,7 +574,10 @@ def consistency_voting(
         positive &= ~query.clipped  # a saturated pixel's match comes from its neighbours' texture
     if min_query_support > 0:
         positive &= support_count(query.support_bits) >= min_query_support
-    positive &= ~query_band
+    if edge_jump_px > 0 and edge_below_px is not None and edge_below_px != edge_other_px:
+        positive &= ~view_band(query, camera, edge_jump_px, edge_occluded_side_px, edge_other_px, edge_below_px)
+    else:
+        positive &= ~query_band
     if hole_margin_px > 0:
         positive &= ~hole_margin(query.disparity.reshape(camera.height, camera.width), hole_margin_px).ravel()
     labels[positive] = POSITIVE

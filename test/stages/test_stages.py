@@ -543,19 +543,28 @@ def test_stage3_tolerance_readings() -> None:
 # Stage 2: the fattening band
 
 
-def _band_by_loops(disp: np.ndarray, jump: float, left: int, other: int) -> np.ndarray:
+def _band_by_loops(disp: np.ndarray, jump: float, left: int, other: int, below: int | None = None) -> np.ndarray:
     """Obviously correct reference: look at every neighbour of every pixel."""
     h, w = disp.shape
+    below = other if below is None else below
     valid = np.isfinite(disp) & (disp > 0)
     band = np.zeros((h, w), dtype=bool)
     for r in range(h):
         for c in range(w):
             if not valid[r, c]:
                 continue
-            for rr in range(max(r - other, 0), min(r + other, h - 1) + 1):
-                for cc in range(max(c - left, 0), min(c + other, w - 1) + 1):
-                    if valid[rr, cc] and disp[r, c] - disp[rr, cc] > jump:
-                        band[r, c] = True
+            window = [
+                (rr, cc)
+                for rr in range(max(r - other, 0), min(r + other, h - 1) + 1)
+                for cc in range(max(c - left, 0), min(c + other, w - 1) + 1)
+            ]
+            window += [
+                (rr, cc)
+                for rr in range(r, min(r + below, h - 1) + 1)
+                for cc in range(max(c - other, 0), min(c + other, w - 1) + 1)
+            ]
+            if any(valid[rr, cc] and disp[r, c] - disp[rr, cc] > jump for rr, cc in window):
+                band[r, c] = True
     return band
 
 
@@ -569,6 +578,25 @@ def test_fattening_band_matches_brute_force() -> None:
     for jump, left, other in ((4.0, 6, 2), (4.0, 0, 0), (1.0, 3, 3), (4.0, 16, 3)):
         got = fattening_band(disp, jump_px=jump, occluded_side_px=left, other_px=other)
         np.testing.assert_array_equal(got, _band_by_loops(disp, jump, left, other))
+    for jump, left, other, below in ((4.0, 6, 2, 9), (4.0, 0, 0, 5), (1.0, 3, 3, 0), (4.0, 20, 4, 24)):
+        got = fattening_band(disp, jump_px=jump, occluded_side_px=left, other_px=other, below_px=below)
+        np.testing.assert_array_equal(got, _band_by_loops(disp, jump, left, other, below))
+
+
+def test_fattening_band_reaches_further_down_only_with_below_px() -> None:
+    disp = np.full((60, 40), 10.0)
+    disp[10:30, 10:30] = 30.0  # an object in front; its lower edge at row 29
+    column = fattening_band(disp, jump_px=4.0, occluded_side_px=0, other_px=2, below_px=12)[:, 20]
+    # Rows within 12 of the background below (from 18) and within 2 of the background above (10, 11).
+    np.testing.assert_array_equal(np.flatnonzero(column), [10, 11, *range(18, 30)])
+    # The strip below is other_px wide either side: an object whose left half reaches lower (an L) puts the
+    # background 5 rows under a pixel 2 columns right of the step, and none under one 5 columns left of it.
+    disp[30:50, 10:20] = 30.0
+    strip = fattening_band(disp, jump_px=4.0, occluded_side_px=2, other_px=4, below_px=12)
+    assert strip[25, 22] and strip[25, 16] and not strip[25, 15] and not strip[25, 14]
+    assert not fattening_band(disp, jump_px=4.0, occluded_side_px=2, other_px=4)[25, 22]
+    symmetric = fattening_band(disp, jump_px=4.0, occluded_side_px=0, other_px=2)[:, 20]
+    np.testing.assert_array_equal(np.flatnonzero(symmetric), [10, 11, 28, 29])
 
 
 def test_fattening_band_reaches_further_left() -> None:
@@ -595,6 +623,23 @@ def test_no_positive_label_in_the_fattening_band() -> None:
     assert np.all(off[40:80, 80:96] == POSITIVE)  # the references confirm these points ...
     assert np.all(on[band] == UNKNOWN)  # ... but a pixel in the band is never positive
     np.testing.assert_array_equal(on[~band], off[~band])
+
+
+def test_band_reaching_down_takes_positives_only() -> None:
+    query = view_at(0.0, radius=9.0)
+    refs = [_supported(view_at(20.0, radius=6.0)), _supported(view_at(-20.0, radius=6.0))]
+    disp = query.disparity.reshape(CAMERA.height, CAMERA.width).copy()
+    query.disparity.reshape(disp.shape)[70:, :] -= 5.0  # pretend rows from 70 down lie behind: an object's lower edge
+    kw = {"tolerance": "sum", "edge_jump_px": 4.0, "edge_occluded_side_px": 16, "edge_other_px": 3, **KW}
+    near = consistency_voting(query, refs, CAMERA, **kw).labels.reshape(disp.shape)
+    far = consistency_voting(query, refs, CAMERA, edge_below_px=12, **kw).labels.reshape(disp.shape)
+    assert np.all(near[62:67, 40:120] == POSITIVE)  # the symmetric band reaches rows 67-69 only ...
+    assert np.all(far[58:70, 40:120] == UNKNOWN)  # ... the one reaching down 12 rows from 58
+    np.testing.assert_array_equal(far[:58], near[:58])
+    np.testing.assert_array_equal(far[70:], near[70:])
+    # A band reaching down as far as the rest gives the very same labels.
+    same = consistency_voting(query, refs, CAMERA, edge_below_px=3, **kw).labels
+    np.testing.assert_array_equal(same, near.ravel())
 
 
 def test_hole_margin_matches_brute_force_and_skips_each_rows_leading_strip() -> None:
