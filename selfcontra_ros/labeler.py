@@ -470,9 +470,12 @@ class LabelerParams:
             %): street 99.42, 98.68; 41.72 -> 99.45, 98.75; 41.58; orbit
             99.31, 98.96; 74.72 -> 99.37, 99.04; 74.30; room 99.61, 99.16;
             38.33 -> 99.67, 99.39; 38.05; negatives unchanged. 12 / 16 / 24
-            / 28 px took the room's worst to 99.23 / 99.27 / 99.39 / 99.40 %
-            for 0.4 / 0.6 / 1.2 / 1.6 % of its positives (relabelling
-            offline).
+            / 28 px would take the room's worst to 99.23 / 99.27 / 99.39 /
+            99.40 % for 0.4 / 0.6 / 1.2 / 1.6 % of its positives (estimated
+            by taking the positives out of the 4-px labels; the labelling
+            at 24 px gave the same 99.39). A matcher with paths from below
+            too (``hh``, 8 paths) has no such direction: not measured, the
+            symmetric band (4) may suit it better.
         min_positive_votes: +1 votes an augmented-depth candidate needs (paper: 3).
         stage3_min_free_space_views: a Stage-3 negative (query depth in
             front of the augmented depth) is kept only where at least this
