@@ -469,7 +469,7 @@ class LabelerParams:
             1226x370, 4 -> 24 px (positive precision mean, worst; coverage;
             %): street 99.42, 98.68; 41.72 -> 99.45, 98.75; 41.58; orbit
             99.31, 98.96; 74.72 -> 99.37, 99.04; 74.30; room 99.61, 99.16;
-            38.33 -> 99.67, 99.39; 38.05; negatives unchanged. 12 / 16 / 24
+            38.33 -> 99.67, 99.39; 38.05; negatives within 0.03. 12 / 16 / 24
             / 28 px would take the room's worst to 99.23 / 99.27 / 99.39 /
             99.40 % for 0.4 / 0.6 / 1.2 / 1.6 % of its positives (estimated
             by taking the positives out of the 4-px labels; the labelling
