@@ -361,8 +361,11 @@ def view_band(
     other_px: int,
     below_px: int | None = None,
 ) -> NDArray[np.bool_]:
-    """The :func:`fattening_band` of a view's disparity (flat), computed once per view and size (``View.bands``)."""
-    below = int(other_px if below_px is None else below_px)
+    """The :func:`fattening_band` of a view's disparity (flat), computed once per view and size (``View.bands``).
+
+    A ``below_px`` of None or not above ``other_px`` is the symmetric band and shares its cache entry.
+    """
+    below = int(other_px if below_px is None else max(below_px, other_px))
     key = (float(jump_px), int(occluded_side_px), int(other_px), below)
     band = view.bands.get(key)
     if band is None:
@@ -574,10 +577,9 @@ def consistency_voting(
         positive &= ~query.clipped  # a saturated pixel's match comes from its neighbours' texture
     if min_query_support > 0:
         positive &= support_count(query.support_bits) >= min_query_support
-    if edge_jump_px > 0 and edge_below_px is not None and edge_below_px != edge_other_px:
+    if edge_jump_px > 0:
+        # The band as the positive rule sees it (the symmetric query_band itself without a longer reach down).
         positive &= ~view_band(query, camera, edge_jump_px, edge_occluded_side_px, edge_other_px, edge_below_px)
-    else:
-        positive &= ~query_band
     if hole_margin_px > 0:
         positive &= ~hole_margin(query.disparity.reshape(camera.height, camera.width), hole_margin_px).ravel()
     labels[positive] = POSITIVE
