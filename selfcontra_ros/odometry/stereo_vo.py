@@ -68,20 +68,21 @@ import math
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field, replace
-from typing import Any, Generic, TypeVar, overload
+from typing import TYPE_CHECKING, Any, Generic, TypeVar, overload
 
 import cv2
 import numpy as np
-import scipy.linalg
-import scipy.sparse
 from numpy.typing import NDArray
-from scipy.optimize import least_squares
-from scipy.spatial.transform import Rotation
 
 from selfcontra_ros.errors import SelfContraError
 from selfcontra_ros.geometry import StereoCamera, invert_pose
 from selfcontra_ros.matching.census import hamming
 from selfcontra_ros.odometry.ground import GroundPlane, fit_ground, road_costs, road_step
+
+# scipy is imported where it is used: it is about 2 s of a process's start (a third of the labeler node's), and
+# only a run of the odometry needs it, whereas the node and the commands import this module for its parameters.
+if TYPE_CHECKING:
+    import scipy.sparse
 
 __all__ = [
     "STATUSES",
@@ -816,6 +817,8 @@ def _rotation_deg(rotation: F64) -> float:
 
 def _pose_from_vector(x: F64) -> F64:
     """4x4 transform of a 6-vector (rotation vector, translation)."""
+    from scipy.spatial.transform import Rotation
+
     pose = np.eye(4)
     pose[:3, :3] = Rotation.from_rotvec(x[:3]).as_matrix()
     pose[:3, 3] = x[3:6]
@@ -823,6 +826,8 @@ def _pose_from_vector(x: F64) -> F64:
 
 
 def _vector_from_pose(pose: F64) -> F64:
+    from scipy.spatial.transform import Rotation
+
     return np.concatenate([Rotation.from_matrix(pose[:3, :3]).as_rotvec(), pose[:3, 3]])
 
 
@@ -1372,6 +1377,8 @@ class StereoOdometry:
             were ``params.disparity_bias_px`` smaller, which is how strongly
             the scale rests on far points.
         """
+        from scipy.optimize import least_squares
+
         p = self.params
         cur_disparity, ref_disparity = cur.disparity[ci], ref.disparity[ri]
         ref_points, cur_points = ref.points[ri], cur.points[ci]
@@ -1972,6 +1979,8 @@ class StereoOdometry:
 
     def _bundle_adjust(self) -> None:
         """Refine the window's poses (all but the oldest) and its tracks' points; update :attr:`poses`."""
+        from scipy.optimize import least_squares
+
         frames = list(self._window)
         if len(frames) < 3:
             return
@@ -2123,6 +2132,8 @@ class _WindowProblem:
         uv: F64,
         u_right: F64,
     ) -> None:
+        import scipy.sparse
+
         self.fx, self.fy, self.cx, self.cy = camera.fx, camera.fy, camera.cx, camera.cy
         self.fb = camera.focal_baseline
         self.fixed, self.fi, self.pi, self.uv, self.u_right = fixed, fi, pi, uv, u_right
@@ -2156,6 +2167,8 @@ class _WindowProblem:
     def _camera_points(self, x: F64) -> tuple[F64, F64, F64, F64]:
         """The free frames' rotation vectors (F, 3); every frame's rotation (F+1, 3, 3) and translation (F+1, 3);
         the observed points in their camera (N, 3)."""
+        from scipy.spatial.transform import Rotation
+
         cams = x[: 6 * self.n_free].reshape(self.n_free, 6)
         pts = x[6 * self.n_free :].reshape(-1, 3)
         rot = np.concatenate([self.fixed[None, :3, :3], Rotation.from_rotvec(cams[:, :3]).as_matrix()])
@@ -2174,6 +2187,8 @@ class _WindowProblem:
 
     def jacobian(self, x: F64) -> scipy.sparse.csr_matrix:
         """The residuals' derivatives (3 N, len(x)), sparse (:meth:`blocks` in scipy's layout)."""
+        import scipy.sparse
+
         data = self.blocks(x)[self._present][self._order]
         return scipy.sparse.csr_matrix((data, self._indices, self._indptr), shape=self._shape)
 
@@ -2222,6 +2237,8 @@ class _WindowProblem:
         Returns:
             The solution and its residuals (3 N,).
         """
+        import scipy.linalg
+
         x = np.array(x0, dtype=np.float64, copy=True)
         res = self.residuals(x)
         cost = float(res @ res)
@@ -2343,6 +2360,8 @@ def _row_candidates(query_rows: F64, train_rows: F64, reach: F64) -> tuple[NDArr
 def _step_of(motion: F64, steps: int) -> F64:
     """The per-frame motion whose ``steps``-th power is ``motion``: the rotation vector divided by ``steps``,
     and the translation ``t`` with ``(I + R + ... + R^(steps-1)) t`` = the motion's."""
+    from scipy.spatial.transform import Rotation
+
     step = np.eye(4)
     step[:3, :3] = Rotation.from_rotvec(Rotation.from_matrix(motion[:3, :3]).as_rotvec() / steps).as_matrix()
     powers = np.eye(3)
