@@ -22,7 +22,8 @@ from selfcontra_ros.config import NODE_PARAMETERS, read_node_parameters, read_pa
 from selfcontra_ros.errors import SelfContraError
 from selfcontra_ros.resources import config_file
 
-# A prange kernel that records which numba thread ran each iteration: the threads really used.
+# A prange kernel that records which numba thread ran each iteration: the threads really used. It lives in a
+# module file so that numba caches it (``cache=True``): the second subprocess loads it instead of compiling.
 _PROBE = """
 import json, os, threading
 import numpy as np
@@ -33,7 +34,7 @@ import scipy.linalg, sklearn.ensemble  # load their BLAS / OpenMP libraries, as 
 from threadpoolctl import threadpool_info
 from selfcontra_ros.threads import apply_thread_limit, limit_threads
 
-@njit(parallel=True)
+@njit(parallel=True, cache=True)
 def thread_ids(n):
     out = np.empty(n, np.int64)
     for i in prange(n):
@@ -52,10 +53,19 @@ def observe():
 """
 
 
-def _run(script: str) -> dict[str, Any]:
-    """Run ``_PROBE`` + ``script`` in a fresh interpreter; return the JSON it prints last."""
+@pytest.fixture(scope="module")
+def probe(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The folder of ``thread_probe.py`` (``_PROBE``), numba's cache beside it."""
+    folder = tmp_path_factory.mktemp("thread_probe")
+    (folder / "thread_probe.py").write_text(_PROBE)
+    return folder
+
+
+def _run(probe: Path, script: str) -> dict[str, Any]:
+    """Run ``script`` after ``from thread_probe import *`` in a fresh interpreter; return the JSON it prints last."""
+    prelude = f"import sys\nsys.path.insert(0, {str(probe)!r})\nfrom thread_probe import *\n"
     done = subprocess.run(
-        [sys.executable, "-c", _PROBE + textwrap.dedent(script)],
+        [sys.executable, "-c", prelude + textwrap.dedent(script)],
         capture_output=True,
         text=True,
         timeout=120,
@@ -67,8 +77,9 @@ def _run(script: str) -> dict[str, Any]:
     return result
 
 
-def test_limit_threads_caps_every_pool_in_this_and_later_threads() -> None:
+def test_limit_threads_caps_every_pool_in_this_and_later_threads(probe: Path) -> None:
     out = _run(
+        probe,
         """
         result = {"pool": numba.config.NUMBA_NUM_THREADS, "uncapped": observe()}
         result["applied"] = limit_threads(1)
@@ -83,7 +94,7 @@ def test_limit_threads_caps_every_pool_in_this_and_later_threads() -> None:
             t.start()
             t.join()
         print(json.dumps(result))
-        """
+        """,
     )
     assert out["applied"] == 1
     assert out["cv2"] == 1
@@ -99,16 +110,17 @@ def test_limit_threads_caps_every_pool_in_this_and_later_threads() -> None:
         assert out["thread_without_apply"]["numba"] == out["pool"]
 
 
-def test_zero_means_the_cores_of_the_affinity_mask() -> None:
+def test_zero_means_the_cores_of_the_affinity_mask(probe: Path) -> None:
     if not hasattr(os, "sched_setaffinity"):
         pytest.skip("no CPU affinity API on this platform")
     out = _run(
+        probe,
         """
         os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
         result = {"zero": limit_threads(0), "cv2": cv2.getNumThreads(), "main": observe()}
         result["above"] = limit_threads(64)  # lowered to the one core given
         print(json.dumps(result))
-        """
+        """,
     )
     assert out["zero"] == 1 and out["above"] == 1 and out["cv2"] == 1
     assert out["main"]["numba"] == 1 and out["main"]["kernel_threads"] == [0]
