@@ -7,6 +7,7 @@ with the same parameters: the node must give exactly its depth and labels.
 from __future__ import annotations
 
 import json
+import re
 import signal
 import threading
 import time
@@ -283,6 +284,22 @@ def spin_nodes(nodes: list[Any], predicate: Callable[[], bool], timeout: float) 
     return predicate()
 
 
+def refused_node(context: Any, argument: str, message: str) -> None:
+    """A labeler node given the one ``-p`` ``argument`` (``name:=value``, the value read as the CLI reads it) and
+    defaults otherwise fails to start with :class:`LabelerConfigError` or rclpy's ``ParameterException`` (what
+    ``main`` reports as exit code 2), saying ``message``."""
+    import yaml
+    from rclpy.exceptions import ParameterException
+    from rclpy.parameter import Parameter
+
+    from selfcontra_ros.ros.labeler_node import LabelerConfigError, LabelerNode
+
+    name, _, value = argument.partition(":=")
+    override = Parameter(name, value=yaml.safe_load(value))
+    with pytest.raises((LabelerConfigError, ParameterException), match=re.escape(message)):
+        LabelerNode(context=context, parameter_overrides=[override])
+
+
 @pytest.fixture
 def labeler_node(rclpy_context: Any, params_file: Path) -> Iterator[Callable[..., Any]]:
     """Factory of in-process labeler nodes (parameters of the test YAML plus overrides), destroyed at teardown."""
@@ -464,6 +481,14 @@ def test_odometry_pose_source(
     check_outputs(recorder, frames, params_file, flushed=False)
 
 
+def test_invalid_parameter_exits_with_code_2(ros_process: Callable[..., Any]) -> None:
+    """The executable reports a parameter rclpy refuses (outside its declared range) in one line, exit code 2."""
+    node = ros_process([*NODE, "-p", "labeler.window_size:=1"], name="labeler")
+    assert node.popen.wait(timeout=WAIT_S) == 2, node.stderr()
+    assert "out of range" in node.stderr()
+    assert "Traceback" not in node.stderr()
+
+
 @pytest.mark.parametrize(
     ("argument", "message"),
     [
@@ -473,11 +498,10 @@ def test_odometry_pose_source(
         ("matcher.mode:=fast", "MatcherParams.mode must be one of"),
     ],
 )
-def test_invalid_parameter_exits_with_code_2(ros_process: Callable[..., Any], argument: str, message: str) -> None:
-    node = ros_process([*NODE, "-p", argument], name="labeler")
-    assert node.popen.wait(timeout=WAIT_S) == 2, node.stderr()
-    assert message in node.stderr()
-    assert "Traceback" not in node.stderr()
+def test_invalid_parameter_is_refused_with_its_reason(rclpy_context: Any, argument: str, message: str) -> None:
+    """Each invalid parameter (defaults otherwise) raises one of the errors ``main`` turns into exit code 2, naming
+    what is wrong. In process: the executable's path is the test above, and each node process costs seconds."""
+    refused_node(rclpy_context, argument, message)
 
 
 def test_external_disparity_mode_labels_the_given_disparities(

@@ -353,20 +353,27 @@ def test_node_reads_compressed_images_on_remapped_base_names_and_counts_bad_ones
     helpers.check_outputs(recorder, frames, params_file, flushed=False)
 
 
+def test_invalid_robot_parameters_exit_with_code_2(ros_process: Callable[..., Any]) -> None:
+    """The executable reports a combination the node refuses itself (not rclpy) in one line, exit code 2."""
+    node = ros_process([*NODE, "-p", "pose_source:=tf"], name="labeler")
+    assert node.popen.wait(timeout=WAIT_S) == 2, node.stderr()
+    message = "'world_frame' is required with pose_source 'tf'"
+    assert message in node.stderr() and "Traceback" not in node.stderr()
+
+
 @pytest.mark.parametrize(
-    ("arguments", "message"),
+    ("argument", "message"),
     [
-        (["pose_source:=tf"], "'world_frame' is required with pose_source 'tf'"),
-        (["world_frame:=odom"], "apply to pose_source 'tf' only"),
-        (["image_transport:=theora"], "expected one of raw, compressed"),
+        ("pose_source:=tf", "'world_frame' is required with pose_source 'tf'"),
+        ("world_frame:=odom", "apply to pose_source 'tf' only"),
+        ("image_transport:=theora", "expected one of raw, compressed"),
     ],
 )
-def test_invalid_robot_parameters_exit_with_code_2(
-    ros_process: Callable[..., Any], arguments: list[str], message: str
+def test_invalid_robot_parameters_are_refused_with_their_reason(
+    rclpy_context: Any, argument: str, message: str
 ) -> None:
-    node = ros_process([*NODE, *(a for arg in arguments for a in ("-p", arg))], name="labeler")
-    assert node.popen.wait(timeout=WAIT_S) == 2, node.stderr()
-    assert message in node.stderr() and "Traceback" not in node.stderr()
+    """In process, as the labeler's other invalid parameters (test_labeler_node.py)."""
+    helpers.refused_node(rclpy_context, argument, message)
 
 
 @pytest.mark.skipif(importlib.util.find_spec("tf2_ros") is not None, reason="this ROS install has tf2_ros")
