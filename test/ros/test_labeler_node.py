@@ -300,6 +300,15 @@ def refused_node(context: Any, argument: str, message: str) -> None:
         LabelerNode(context=context, parameter_overrides=[override])
 
 
+def exits_with_code_2(ros_process: Callable[..., Any], argument: str, message: str) -> None:
+    """The labeler executable given the one ``-p`` ``argument`` and defaults otherwise exits with code 2 and
+    reports ``message`` in one line, without a traceback (the process path of :func:`refused_node`)."""
+    node = ros_process([*NODE, "-p", argument], name="labeler")
+    assert node.popen.wait(timeout=WAIT_S) == 2, node.stderr()
+    assert message in node.stderr()
+    assert "Traceback" not in node.stderr()
+
+
 @pytest.fixture
 def labeler_node(rclpy_context: Any, params_file: Path) -> Iterator[Callable[..., Any]]:
     """Factory of in-process labeler nodes (parameters of the test YAML plus overrides), destroyed at teardown."""
@@ -483,10 +492,7 @@ def test_odometry_pose_source(
 
 def test_invalid_parameter_exits_with_code_2(ros_process: Callable[..., Any]) -> None:
     """The executable reports a parameter rclpy refuses (outside its declared range) in one line, exit code 2."""
-    node = ros_process([*NODE, "-p", "labeler.window_size:=1"], name="labeler")
-    assert node.popen.wait(timeout=WAIT_S) == 2, node.stderr()
-    assert "out of range" in node.stderr()
-    assert "Traceback" not in node.stderr()
+    exits_with_code_2(ros_process, "labeler.window_size:=1", "out of range")
 
 
 @pytest.mark.parametrize(

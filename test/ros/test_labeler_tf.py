@@ -355,10 +355,7 @@ def test_node_reads_compressed_images_on_remapped_base_names_and_counts_bad_ones
 
 def test_invalid_robot_parameters_exit_with_code_2(ros_process: Callable[..., Any]) -> None:
     """The executable reports a combination the node refuses itself (not rclpy) in one line, exit code 2."""
-    node = ros_process([*NODE, "-p", "pose_source:=tf"], name="labeler")
-    assert node.popen.wait(timeout=WAIT_S) == 2, node.stderr()
-    message = "'world_frame' is required with pose_source 'tf'"
-    assert message in node.stderr() and "Traceback" not in node.stderr()
+    helpers.exits_with_code_2(ros_process, "pose_source:=tf", "'world_frame' is required with pose_source 'tf'")
 
 
 @pytest.mark.parametrize(
