@@ -72,11 +72,11 @@ typecheck: $(STAMP)
 unit: $(STAMP)
 	$(BIN)/python -m pytest -q
 
-# On a fresh checkout numba compiles the package's kernels for about a minute (selfcontra_ros/warmup.py);
-# it does so on the second core while ruff and mypy run, and the tests load the kernels from numba's on-disk
-# cache. A failing lint, type check or warm-up still fails the target, after the other has ended.
+# On a fresh checkout numba compiles the package's kernels (those of every feature set) for about a minute
+# (selfcontra_ros/warmup.py); it does so on the second core while ruff and mypy run, and the tests load the
+# kernels from numba's on-disk cache. A failing lint, type check or warm-up still fails the target, after the other has ended.
 test: $(STAMP)
-	@$(BIN)/python -c "from selfcontra_ros.warmup import warm_up; warm_up(('gcp', 'ensemble', 'park'))" & \
+	@$(BIN)/python -c "from selfcontra_ros.confidence.constants import FEATURE_SETS; from selfcontra_ros.warmup import warm_up; warm_up(tuple(FEATURE_SETS))" & \
 	warm=$$!; $(MAKE) --no-print-directory lint typecheck; checks=$$?; \
 	wait $$warm || { echo "make test: the numba warm-up failed"; exit 1; }; exit $$checks
 	$(MAKE) --no-print-directory unit
