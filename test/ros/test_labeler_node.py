@@ -300,13 +300,15 @@ def refused_node(context: Any, argument: str, message: str) -> None:
         LabelerNode(context=context, parameter_overrides=[override])
 
 
-def exits_with_code_2(ros_process: Callable[..., Any], argument: str, message: str) -> None:
-    """The labeler executable given the one ``-p`` ``argument`` and defaults otherwise exits with code 2 and
-    reports ``message`` in one line, without a traceback (the process path of :func:`refused_node`)."""
-    node = ros_process([*NODE, "-p", argument], name="labeler")
+def exits_with_code_2(ros_process: Callable[..., Any], arguments: list[str], message: str) -> str:
+    """The labeler executable given the ``-p`` ``arguments`` and defaults otherwise exits with code 2 and
+    reports ``message`` without a traceback (the process path of :func:`refused_node`); returns its stderr."""
+    node = ros_process([*NODE, *(arg for argument in arguments for arg in ("-p", argument))], name="labeler")
     assert node.popen.wait(timeout=WAIT_S) == 2, node.stderr()
-    assert message in node.stderr()
-    assert "Traceback" not in node.stderr()
+    err = node.stderr()
+    assert message in err
+    assert "Traceback" not in err
+    return str(err)
 
 
 @pytest.fixture
@@ -492,7 +494,7 @@ def test_odometry_pose_source(
 
 def test_invalid_parameter_exits_with_code_2(ros_process: Callable[..., Any]) -> None:
     """The executable reports a parameter rclpy refuses (outside its declared range) in one line, exit code 2."""
-    exits_with_code_2(ros_process, "labeler.window_size:=1", "out of range")
+    exits_with_code_2(ros_process, ["labeler.window_size:=1"], "out of range")
 
 
 @pytest.mark.parametrize(
